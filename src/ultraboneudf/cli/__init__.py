@@ -1,0 +1,59 @@
+"""The ``ultraboneudf`` command. It only composes the library; each sub-command lives in
+``cli/cmd_<name>.py`` and exposes ``register(subparsers)``, which adds its parser and sets
+``func`` to a callable ``(args) -> int``.
+
+Exit codes: 0 success; 2 bad input or usage (one line on stderr, no traceback); 1 anything else.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import traceback
+
+from .._version import __version__
+from ..errors import InputError
+
+COMMANDS = ["reconstruct", "demo", "evaluate", "render", "stats", "sweep2points", "simulate"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ultraboneudf",
+        description="Bone surface meshes (mm) from tracked ultrasound point clouds with neural "
+                    "unsigned distance fields (UltraBoneUDF) and DualMesh-UDF extraction.")
+    parser.add_argument("--version", action="version", version=f"ultraboneudf {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        try:
+            module = importlib.import_module(f".cmd_{name}", __name__)
+        except ModuleNotFoundError as exc:
+            if exc.name != f"{__name__}.cmd_{name}":
+                raise
+            continue  # a command whose module is not part of this build
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help(sys.stderr)
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        print(f"ultraboneudf {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("ultraboneudf: interrupted", file=sys.stderr)
+        return 130
+    except Exception:  # a bug: show it, exit 1
+        traceback.print_exc()
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,264 @@
+"""Typed configuration of a reconstruction, the named presets, and overrides.
+
+A :class:`Config` has one dataclass per stage. Every field carries the paper's or the official
+code's value (see ``ALGORITHMS.md``); the presets differ only where the two disagree (§1.11) and in
+the ``fast`` preset designed here. Thresholds of the field and of the extractor are in *unit space*
+(the normalised frame of §0.1); quantities in millimetres say ``_mm`` in their name.
+
+Overrides are ``"section.field=value"`` strings (the CLI's ``--set``) or keyword arguments
+(``iters=1000``, ``train__iters=1000``); a bare field name must be unique across sections.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field, fields
+from typing import Any, Mapping
+
+from .errors import InputError
+
+
+@dataclass
+class DataConfig:
+    """Pre-processing: down-sampling, surface subset, queries and anchors (§1.2–1.4)."""
+
+    voxel_size_mm: float = 0.1
+    """Edge of the down-sampling voxel in mm (voxel mean, §1.2 step 2); 0 disables it."""
+    subset: str = "official"
+    """Surface subset rule: ``official`` (FPS 5k ∪ FPS 15k when above ``subset_threshold`` points,
+    else all), ``fps`` (FPS to ``max_points`` distinct points, all if fewer), ``all``."""
+    subset_threshold: int = 60_000
+    """Official rule: clouds with more points than this are reduced by FPS."""
+    fps_sizes: tuple[int, ...] = (5_000, 15_000)
+    """Official rule: the FPS sizes whose results are concatenated (duplicates kept)."""
+    max_points: int = 40_000
+    """``fps`` rule: number of distinct surface points."""
+    sigma_k: int = 50
+    """σ(p) = distance to the k-th nearest *other* point (§0.7)."""
+    queries_per_point: int = 20
+    """Gaussian queries per surface row (§1.3)."""
+    grid_queries: int = 30_000
+    """Far-field queries drawn from the two lattices of §0.8; 0 disables them."""
+    drop_to_multiple: int = 1_000
+    """Official: drop the last ``T mod drop_to_multiple`` stored queries (§1.3 step 4); 0 keeps all."""
+    anchors: str = "official"
+    """Global-shape anchors: ``official`` (10³ lattice on [−1, 1]³) or ``bbox`` (lattice over the
+    bounding box of P, the paper's wording); ``none`` disables L_GS."""
+    anchor_resolution: int = 10
+    """Anchors per axis of the lattice."""
+    anchor_squared_target: bool = True
+    """Official: regress u(ρ) on the *squared* distance to P (§1.4, [!])."""
+    anchor_min_target: float = 0.1
+    """Keep anchors whose target exceeds this (official: squared distance > 0.1); a negative value
+    keeps all."""
+    noise_sigma_mm: float = 0.0
+    """Gaussian noise (mm) added to the input before pre-processing (experiment E6); 0 = none."""
+
+
+@dataclass
+class ModelConfig:
+    """The MLP field (§0.3, §1.5)."""
+
+    hidden: tuple[int, ...] = (64, 128, 128, 256, 256, 256)
+    """Hidden widths; the official network has 6 hidden layers (191,042 parameters)."""
+    weight_norm: bool = True
+    geometric_init_radius: float = 0.5
+    """β of the geometric initialisation: the initial field is |‖x‖ − β|."""
+    abs_output: bool = True
+    """Absolute value at the output (an unsigned distance field)."""
+
+
+@dataclass
+class LossConfig:
+    """Loss terms (§1.6)."""
+
+    kind: str = "tangent"
+    """``tangent`` (UltraBoneUDF, dynamic nearest neighbour) or ``pull`` (static target, §5.3)."""
+    tangent_norm: str = "l1"
+    """Residual penalty of the tangent loss: ``l1`` (official code) or ``l2`` (paper, Eq. 6)."""
+    lambda_tangent: float = 1.0
+    lambda_gs: float = 0.01
+    lambda_os: float = 0.0
+    """On-surface term (Eq. 9); experiment E5 only."""
+    lambda_eik: float = 0.0
+    """Eikonal term (Eq. 10); experiment E5 only."""
+
+
+@dataclass
+class TrainConfig:
+    """The per-scan optimisation (§1.7)."""
+
+    iters: int = 30_000
+    batch: int = 5_000
+    lr: float = 1e-3
+    warmup: int = 1_000
+    """Linear warm-up iterations from lr = 0 (§0.6)."""
+
+
+@dataclass
+class ExtractConfig:
+    """DualMesh-UDF (§2); thresholds in unit space. Defaults: the UltraBoneUDF call of §1.8."""
+
+    max_depth: int = 9
+    sampling_depth: int = 1
+    margin: float = 0.002
+    valid_threshold: float = 0.01
+    min_udf: float = 1e-6
+    corner_factor: float = 1.0
+    edge_factor: float = 1.0
+    plane_factor: float = 1.0
+    sv_threshold: float = 0.2
+    dedup_eps: float = 1e-15
+    batch: int = 150_000
+    """Points per field evaluation."""
+    domain: tuple[float, float] = (-1.0, 1.0)
+    """The octree cube [lo, hi]³ in unit space."""
+    mode: str = "faithful"
+    """``faithful`` reproduces DualMesh-UDF; ``clean`` returns a one-layer manifold-edged mesh."""
+
+
+@dataclass
+class Config:
+    """A whole reconstruction's configuration."""
+
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    extract: ExtractConfig = field(default_factory=ExtractConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dict (tuples become lists)."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "Config":
+        """Inverse of :meth:`to_dict`; unknown keys raise :class:`InputError`."""
+        cfg = cls()
+        for section, values in data.items():
+            for key, value in values.items():
+                _set(cfg, f"{section}.{key}", value)
+        return cfg
+
+
+# The DualMesh-UDF official driver values (§2.11): the generic defaults of the extractor.
+DMU_DEFAULTS: dict[str, Any] = dict(
+    max_depth=7, valid_threshold=0.002, min_udf=0.002, corner_factor=1.0, edge_factor=1.0,
+    plane_factor=0.15, sv_threshold=0.08, dedup_eps=1e-7,
+)
+
+
+def _official() -> Config:
+    return Config()
+
+
+def _paper() -> Config:
+    cfg = Config()
+    cfg.data = DataConfig(subset="fps", max_points=40_000, grid_queries=0, drop_to_multiple=0,
+                          anchors="bbox", anchor_squared_target=False, anchor_min_target=-1.0)
+    cfg.loss.tangent_norm = "l2"
+    # 256 cells across the object (depth 9 on [−1, 1]³) with the official DMU thresholds (§1.11).
+    cfg.extract = ExtractConfig(**{**DMU_DEFAULTS, "max_depth": 9})
+    return cfg
+
+
+def _fast() -> Config:
+    """Designed for ≤ 2 minutes on a 2-core CPU for a 100k-point cloud (see README)."""
+    cfg = Config()
+    cfg.data.subset = "fps"
+    cfg.data.max_points = 10_000
+    cfg.data.queries_per_point = 20
+    cfg.data.grid_queries = 10_000
+    cfg.data.drop_to_multiple = 0
+    cfg.model.hidden = (64, 128, 128, 128)
+    cfg.train.iters = 2_000
+    cfg.train.batch = 2_000
+    cfg.train.warmup = 100
+    cfg.train.lr = 2e-3
+    cfg.extract.max_depth = 8
+    return cfg
+
+
+PRESETS = {"official": _official, "paper": _paper, "fast": _fast}
+
+
+def preset(name: str) -> Config:
+    """A fresh :class:`Config` of the named preset (``official``, ``paper`` or ``fast``)."""
+    try:
+        return PRESETS[name]()
+    except KeyError:
+        raise InputError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}") from None
+
+
+def _sections(cfg: Config) -> dict[str, Any]:
+    return {f.name: getattr(cfg, f.name) for f in fields(cfg)}
+
+
+def _resolve_key(cfg: Config, key: str) -> tuple[Any, str]:
+    key = key.replace("__", ".")
+    sections = _sections(cfg)
+    if "." in key:
+        section, name = key.split(".", 1)
+        if section not in sections:
+            raise InputError(f"unknown config section {section!r} in {key!r}; "
+                             f"sections: {', '.join(sections)}")
+        obj = sections[section]
+        if name not in {f.name for f in fields(obj)}:
+            raise InputError(f"unknown config key {key!r}")
+        return obj, name
+    owners = [obj for obj in sections.values() if key in {f.name for f in fields(obj)}]
+    if len(owners) != 1:
+        what = "ambiguous" if owners else "unknown"
+        raise InputError(f"{what} config key {key!r}; write it as section.{key}")
+    return owners[0], key
+
+
+def _coerce(current: Any, value: Any, key: str) -> Any:
+    """Convert ``value`` (possibly a string from the command line) to the type of ``current``."""
+    try:
+        if isinstance(value, str):
+            if isinstance(current, bool):
+                low = value.strip().lower()
+                if low not in {"true", "false", "1", "0", "yes", "no"}:
+                    raise ValueError(value)
+                return low in {"true", "1", "yes"}
+            if isinstance(current, (int, float, tuple)):
+                parsed = json.loads(value if not isinstance(current, tuple) else
+                                    "[" + value.strip("()[] ") + "]")
+                return _coerce(current, parsed, key)
+            return value
+        if isinstance(current, bool):
+            if not isinstance(value, bool):
+                raise ValueError(value)
+            return value
+        if isinstance(current, int):
+            if isinstance(value, bool) or float(value) != int(value):
+                raise ValueError(value)
+            return int(value)
+        if isinstance(current, float):
+            return float(value)
+        if isinstance(current, tuple):
+            return tuple(_coerce(current[0] if current else 0.0, v, key) for v in value)
+        return value
+    except (ValueError, TypeError, json.JSONDecodeError):
+        raise InputError(f"bad value {value!r} for config key {key!r} "
+                         f"(expected {type(current).__name__})") from None
+
+
+def _set(cfg: Config, key: str, value: Any) -> None:
+    obj, name = _resolve_key(cfg, key)
+    setattr(obj, name, _coerce(getattr(obj, name), value, key))
+
+
+def apply_overrides(cfg: Config, overrides: Mapping[str, Any] | None = None,
+                    assignments: list[str] | tuple[str, ...] = ()) -> Config:
+    """Apply keyword overrides and ``key=value`` strings to ``cfg`` in place; returns ``cfg``."""
+    for key, value in (overrides or {}).items():
+        _set(cfg, key, value)
+    for item in assignments:
+        if "=" not in item:
+            raise InputError(f"--set expects key=value, got {item!r}")
+        key, value = item.split("=", 1)
+        _set(cfg, key.strip(), value.strip())
+    return cfg

@@ -1,0 +1,259 @@
+"""Reading point clouds and meshes, writing meshes and JSON atomically, validating input.
+
+Point clouds are in millimetres, as ``(N, 3)`` float64 arrays. Readers are chosen by extension
+(:data:`POINT_READERS`); every problem with a file is an :class:`~ultraboneudf.errors.InputError`
+whose message names the file. Writers never leave a half-written file: they write a temporary file
+beside the target and rename it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import trimesh
+
+from .errors import InputError
+
+MIN_POINTS = 100
+MESH_SUFFIXES = (".ply", ".obj", ".stl")
+
+
+# --------------------------------------------------------------------------------------------
+# validation
+
+
+def validate_points(points: Any, source: str = "points", min_points: int = MIN_POINTS) -> np.ndarray:
+    """Check an ``(N, ≥3)`` array of coordinates (mm) and return it as ``(N, 3)`` float64.
+
+    Raises :class:`InputError` naming ``source`` for a wrong shape, NaN/Inf, fewer than
+    ``min_points`` points, or a degenerate cloud (all points identical or on one line).
+    """
+    try:
+        arr = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{source}: cannot be read as an array of numbers") from None
+    if arr.ndim != 2 or arr.shape[1] < 3:
+        raise InputError(f"{source}: expected an N×3 array of coordinates, got shape {arr.shape}")
+    arr = np.ascontiguousarray(arr[:, :3])
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise InputError(f"{source}: {int(bad.sum())} point(s) contain NaN or Inf "
+                         f"(first at point {first})")
+    if len(arr) < min_points:
+        raise InputError(f"{source}: only {len(arr)} points; at least {min_points} are needed")
+    centred = arr - arr.mean(axis=0)
+    sv = np.linalg.svd(centred[:: max(1, len(arr) // 200_000)], compute_uv=False)
+    if sv[0] <= 1e-12 * max(1.0, np.abs(arr).max()):
+        raise InputError(f"{source}: all points are identical; a surface needs spread in two directions")
+    if sv[1] <= 1e-6 * sv[0]:
+        raise InputError(f"{source}: the points are collinear; a surface needs spread in two directions")
+    return arr
+
+
+# --------------------------------------------------------------------------------------------
+# point readers
+
+
+def _first_data_line(lines: list[str]) -> int:
+    for i, line in enumerate(lines):
+        s = line.strip()
+        if s and not s.startswith(("#", "//")):
+            return i
+    return -1
+
+
+def _parse_rows(path: Path, lines: list[str], start: int, delimiter: str | None) -> np.ndarray:
+    """Parse numeric rows (first three columns) line by line; the error names the line number."""
+    rows = []
+    for i in range(start, len(lines)):
+        s = lines[i].strip()
+        if not s or s.startswith(("#", "//")):
+            continue
+        parts = [p for p in (s.split(delimiter) if delimiter else s.split()) if p.strip() != ""]
+        if len(parts) < 3:
+            raise InputError(f"{path}: line {i + 1}: expected at least 3 numbers, got {len(parts)}: "
+                             f"{s[:60]!r}")
+        try:
+            rows.append((float(parts[0]), float(parts[1]), float(parts[2])))
+        except ValueError:
+            raise InputError(f"{path}: line {i + 1}: cannot parse numbers from {s[:60]!r}") from None
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
+
+
+def _read_text(path: Path) -> list[str]:
+    try:
+        return path.read_text(encoding="utf-8", errors="strict").splitlines()
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file (cannot decode as UTF-8)") from None
+
+
+def _read_xyz(path: Path) -> np.ndarray:
+    lines = _read_text(path)
+    start = _first_data_line(lines)
+    if start < 0:
+        raise InputError(f"{path}: contains no points")
+    delimiter = "," if "," in lines[start] else None
+    try:  # fast path in C; on any problem fall back to the line-by-line parser for a precise error
+        arr = np.loadtxt(path, delimiter=delimiter, usecols=(0, 1, 2), comments=("#", "//"),
+                         ndmin=2, dtype=np.float64)
+        if arr.size:
+            return arr
+    except (ValueError, IndexError):
+        pass
+    return _parse_rows(path, lines, start, delimiter)
+
+
+def _read_csv(path: Path) -> np.ndarray:
+    lines = _read_text(path)
+    start = _first_data_line(lines)
+    if start < 0:
+        raise InputError(f"{path}: contains no points")
+    header = [h.strip().strip('"').lower() for h in lines[start].split(",")]
+    try:
+        [float(h) for h in header[:3]]
+        has_header = False
+    except ValueError:
+        has_header = True
+    if not has_header:
+        return _parse_rows(path, lines, start, ",")
+    cols = (0, 1, 2)
+    if all(name in header for name in ("x", "y", "z")):
+        cols = tuple(header.index(name) for name in ("x", "y", "z"))
+    rows = []
+    for i in range(start + 1, len(lines)):
+        s = lines[i].strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.split(",")
+        try:
+            rows.append(tuple(float(parts[c]) for c in cols))
+        except (ValueError, IndexError):
+            raise InputError(f"{path}: line {i + 1}: cannot parse numbers from {s[:60]!r}") from None
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
+
+
+def _read_ply(path: Path) -> np.ndarray:
+    try:
+        geom = trimesh.load(path, process=False)
+    except Exception as exc:  # trimesh raises many types for corrupt files
+        raise InputError(f"{path}: cannot read PLY ({type(exc).__name__}: {exc})") from None
+    vertices = getattr(geom, "vertices", None)
+    if vertices is None:
+        raise InputError(f"{path}: the PLY file holds no vertices")
+    return np.asarray(vertices, dtype=np.float64)
+
+
+def _read_npy(path: Path) -> np.ndarray:
+    try:
+        return np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as exc:
+        raise InputError(f"{path}: cannot read NumPy file ({exc})") from None
+
+
+def _read_npz(path: Path) -> np.ndarray:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if "points" not in data:
+                raise InputError(f"{path}: no array named 'points' (found: {', '.join(data.files)})")
+            return data["points"]
+    except (ValueError, OSError) as exc:
+        raise InputError(f"{path}: cannot read NumPy archive ({exc})") from None
+
+
+POINT_READERS: dict[str, Callable[[Path], np.ndarray]] = {
+    ".xyz": _read_xyz, ".txt": _read_xyz, ".pts": _read_xyz, ".csv": _read_csv,
+    ".ply": _read_ply, ".npy": _read_npy, ".npz": _read_npz,
+}
+
+
+def load_points(path: str | os.PathLike, min_points: int = MIN_POINTS) -> np.ndarray:
+    """Read a point cloud file (mm) into an ``(N, 3)`` float64 array, validated.
+
+    Formats by extension: ``.xyz``/``.txt``/``.pts`` (whitespace or commas, ≥ 3 columns, extra
+    columns ignored), ``.csv`` (optional header; columns ``x,y,z`` if named, else the first three),
+    ``.ply`` (vertices), ``.npy`` (N×≥3), ``.npz`` (array ``points``).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a point cloud file")
+    reader = POINT_READERS.get(path.suffix.lower())
+    if reader is None:
+        raise InputError(f"{path}: unknown point cloud extension {path.suffix!r}; "
+                         f"supported: {', '.join(POINT_READERS)}")
+    return validate_points(reader(path), source=str(path), min_points=min_points)
+
+
+# --------------------------------------------------------------------------------------------
+# meshes
+
+
+def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
+    """Read a triangle mesh (``.ply``, ``.obj``, ``.stl``, ``.off``) without altering it."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:
+        raise InputError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InputError(f"{path}: holds no triangles")
+    return mesh
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same folder and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def check_mesh_path(path: str | os.PathLike) -> Path:
+    """Return ``path`` as a Path if its suffix is a mesh format we write, else raise InputError."""
+    path = Path(path)
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise InputError(f"{path}: unknown mesh extension {path.suffix!r}; "
+                         f"use one of {', '.join(MESH_SUFFIXES)}")
+    return path
+
+
+def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> None:
+    """Write a mesh atomically; the format follows the suffix (``.ply`` binary, ``.obj``, ``.stl``)."""
+    path = check_mesh_path(path)
+    data = trimesh.exchange.export.export_mesh(mesh, file_obj=None, file_type=path.suffix[1:].lower())
+    atomic_write_bytes(path, data if isinstance(data, bytes) else data.encode("utf-8"))
+
+
+def save_json(obj: Any, path: str | os.PathLike) -> None:
+    """Write ``obj`` as indented JSON atomically."""
+    atomic_write_bytes(path, (json.dumps(obj, indent=2) + "\n").encode("utf-8"))
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    """Hex SHA-256 of a file's bytes (folders: of their sorted file names and contents)."""
+    path = Path(path)
+    h = hashlib.sha256()
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    for f in files:
+        if path.is_dir():
+            h.update(str(f.relative_to(path)).encode())
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()
