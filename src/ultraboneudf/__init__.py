@@ -1,0 +1,16 @@
+"""ultraboneudf: bone surface meshes (mm) from tracked ultrasound point clouds.
+
+>>> import ultraboneudf
+>>> points = ultraboneudf.load_points("scan.xyz")                  # (N, 3) mm
+>>> rec = ultraboneudf.reconstruct(points, preset="fast")        # doctest: +SKIP
+>>> rec.save("bone.ply")                                         # mesh + bone.json sidecar
+"""
+
+from ._version import __version__
+from .config import Config, preset
+from .errors import InputError
+from .io import load_mesh, load_points, save_mesh
+from .pipeline import Reconstruction, reconstruct
+
+__all__ = ["__version__", "Config", "preset", "InputError", "load_points", "load_mesh", "save_mesh",
+           "reconstruct", "Reconstruction"]

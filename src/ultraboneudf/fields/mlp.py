@@ -1,0 +1,103 @@
+"""The MLP distance field (§0.3, §1.5): ReLU layers, weight normalisation, geometric initialisation,
+absolute-value output.
+
+Weight normalisation is written out (``W = g · V / ‖V‖_row``) instead of using
+``torch.nn.utils.parametrizations``: the parameters are the same (``V``, ``g`` of shape
+``(out, 1)``, bias; ``out·(in + 2)`` per layer, 191,042 for the official network) and the forward
+pass is cheaper.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from .base import Field
+
+
+class WNLinear(nn.Module):
+    """Linear layer with optional weight normalisation along the output rows (PyTorch ``dim=0``)."""
+
+    def __init__(self, v: torch.Tensor, bias: torch.Tensor, weight_norm: bool) -> None:
+        super().__init__()
+        self.weight_norm = weight_norm
+        self.v = nn.Parameter(v)
+        self.bias = nn.Parameter(bias)
+        if weight_norm:
+            # Initialised to the row norms so that the initial function equals the plain layer.
+            self.g = nn.Parameter(v.norm(dim=1, keepdim=True))
+
+    def weight(self) -> torch.Tensor:
+        if not self.weight_norm:
+            return self.v
+        return self.v * (self.g / self.v.norm(dim=1, keepdim=True))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.addmm(self.bias, x, self.weight().T)
+
+
+class DistanceMLP(nn.Module):
+    """``dims = [3, *hidden, 1]``; ReLU after every layer but the last; ``|·|`` at the output if
+    ``abs_output``. Input in unit space ``(M, 3)``, output ``(M,)`` in unit-space distance."""
+
+    def __init__(self, hidden: tuple[int, ...] = (64, 128, 128, 256, 256, 256), weight_norm: bool = True,
+                 radius: float = 0.5, abs_output: bool = True, in_dim: int = 3,
+                 generator: torch.Generator | None = None) -> None:
+        super().__init__()
+        dims = [in_dim, *hidden, 1]
+        layers = []
+        for i, (fan_in, fan_out) in enumerate(zip(dims[:-1], dims[1:])):
+            if i == len(dims) - 2:
+                # last layer: output ≈ ‖x‖ − radius (the signed distance to a sphere) at initialisation
+                v = torch.normal(math.sqrt(math.pi) / math.sqrt(fan_in), 1e-4, (fan_out, fan_in),
+                                 generator=generator)
+                b = torch.full((fan_out,), -float(radius))
+            else:
+                v = torch.normal(0.0, math.sqrt(2.0) / math.sqrt(fan_out), (fan_out, fan_in),
+                                 generator=generator)
+                b = torch.zeros(fan_out)
+            layers.append(WNLinear(v, b, weight_norm))
+        self.layers = nn.ModuleList(layers)
+        self.abs_output = abs_output
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = x
+        for layer in self.layers[:-1]:
+            h = torch.relu(layer(h))
+        out = self.layers[-1](h).squeeze(-1)
+        return out.abs() if self.abs_output else out
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Number of trainable scalars (weight-norm magnitudes included)."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)
+
+
+def value_and_grad(net: nn.Module, x: torch.Tensor, create_graph: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """``u(x)`` (M,) and ``∇u(x)`` (M, 3) from one forward pass; with ``create_graph`` the gradient is
+    differentiable (needed by losses that depend on ∇u)."""
+    if not x.requires_grad:
+        x = x.requires_grad_(True)
+    u = net(x)
+    (g,) = torch.autograd.grad(u, x, torch.ones_like(u), create_graph=create_graph)
+    return u, g
+
+
+class MLPField(Field):
+    """A trained network as a :class:`Field`: float32 on its device, results cast to the caller's dtype."""
+
+    def __init__(self, net: nn.Module) -> None:
+        self.net = net.eval()
+        first = next(net.parameters())
+        self.device = first.device
+        self.dtype = first.dtype
+
+    def _value(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+    def _value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        with torch.enable_grad():
+            u, g = value_and_grad(self.net, x.detach().clone(), create_graph=False)
+        return u.detach(), g.detach()

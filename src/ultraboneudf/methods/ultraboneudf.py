@@ -1,0 +1,77 @@
+"""UltraBoneUDF (§1): an MLP unsigned distance field trained with the tangent-plane loss and the
+global-shape regulariser; also its ablation variants through ``config.loss`` (kind ``pull``,
+λ_OS, λ_Eik, λ_GS) and ``config.model.hidden``."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from ..config import Config
+from ..fields.mlp import DistanceMLP, MLPField, count_parameters
+from ..geometry.neighbors import NearestIndex
+from ..geometry.queries import anchors, gaussian_queries, grid_queries, query_spread, surface_subset
+from ..progress import QUIET, Progress
+from ..training import TrainingData, train
+from .base import Fitted
+
+
+def prepare(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
+            progress: Progress = QUIET) -> TrainingData:
+    """Surface rows, queries (+ static targets for the pull loss) and anchors, on ``device`` (§1.2–1.4).
+
+    ``points`` is the voxelised, normalised cloud (unit space). Random draws use a NumPy generator
+    seeded with ``seed`` so that the samples are identical on every device.
+    """
+    d = cfg.data
+    rng = np.random.default_rng(seed)
+    with progress.stage("sampling", 4) as advance:
+        surface = surface_subset(points, d.subset, d.subset_threshold, d.fps_sizes, d.max_points,
+                                 device=str(device))
+        advance()
+        sigma = query_spread(surface, d.sigma_k)
+        queries = np.concatenate([gaussian_queries(surface, sigma, d.queries_per_point, rng),
+                                  grid_queries(d.grid_queries, rng)])
+        if d.drop_to_multiple > 0 and len(queries) % d.drop_to_multiple:
+            queries = queries[: len(queries) - len(queries) % d.drop_to_multiple]
+        advance()
+        if d.anchors == "none":
+            anchor_pts, anchor_tgt = np.zeros((0, 3)), np.zeros(0)
+        else:
+            anchor_pts, anchor_tgt = anchors(surface, d.anchors, d.anchor_resolution,
+                                             d.anchor_squared_target, d.anchor_min_target)
+        advance()
+        as_t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
+        data = TrainingData(surface=as_t(surface), queries=as_t(queries), anchors=as_t(anchor_pts),
+                            anchor_targets=as_t(anchor_tgt))
+        if cfg.loss.kind == "pull":
+            # static nearest surface point t(q), computed once (§1.3 step 5)
+            idx = NearestIndex(data.surface).query(data.queries).to(device)
+            data.static_targets = data.surface[idx]
+        advance()
+    return data
+
+
+def build_network(cfg: Config, seed: int, device: torch.device) -> torch.nn.Module:
+    """The MLP of ``cfg.model``, initialised from ``seed`` on the CPU (identical on every device)."""
+    gen = torch.Generator().manual_seed(seed)
+    m = cfg.model
+    net = DistanceMLP(tuple(m.hidden), weight_norm=m.weight_norm, radius=m.geometric_init_radius,
+                      abs_output=m.abs_output, generator=gen)
+    return net.to(device)
+
+
+def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
+        progress: Progress = QUIET) -> Fitted:
+    """Train the UltraBoneUDF field on a unit-space cloud; returns the field and its counts."""
+    t0 = time.perf_counter()
+    data = prepare(points, cfg, device, seed, progress)
+    prep_s = time.perf_counter() - t0
+    net = build_network(cfg, seed, device)
+    result = train(net, data, cfg.loss, cfg.train, seed, progress)
+    counts = {"surface_points": len(data.surface), "queries": len(data.queries),
+              "anchors": len(data.anchors), "parameters": count_parameters(net)}
+    return Fitted(field=MLPField(net), counts=counts,
+                  timings={"preprocess_s": prep_s, "train_s": result.seconds}, history=result.history)

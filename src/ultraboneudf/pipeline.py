@@ -1,0 +1,154 @@
+"""``reconstruct``: points (mm) → pre-processing → method → extraction → mesh (mm).
+
+This is the one place where the cloud is normalised (:class:`Normalizer` fitted on the voxelised
+cloud) and the one place where the mesh is mapped back to millimetres.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import trimesh
+
+from ._version import __version__
+from .config import Config, apply_overrides, preset as make_preset
+from .errors import InputError
+from .geometry.normalize import Normalizer
+from .geometry.voxel import voxel_downsample
+from .io import save_json, save_mesh, validate_points
+from .methods import get_method
+from .progress import QUIET, Progress
+
+
+@dataclass
+class Reconstruction:
+    """The result of :func:`reconstruct`: the mesh in mm (input frame) and its full provenance.
+
+    ``mesh`` is ``None`` when the method found no surface (a failure, never an empty mesh).
+    """
+
+    mesh: trimesh.Trimesh | None
+    method: str
+    preset: str
+    config: Config
+    timings: dict[str, float]
+    counts: dict[str, int]
+    device: str
+    seed: int
+    normalizer: Normalizer
+    history: dict[str, list[float]] = field(default_factory=dict)
+    input: dict[str, Any] = field(default_factory=dict)
+    version: str = __version__
+
+    def sidecar(self) -> dict[str, Any]:
+        """The JSON sidecar (DESIGN.md): everything needed to trace the mesh to its configuration."""
+        return {
+            "method": self.method,
+            "preset": self.preset,
+            "config": self.config.to_dict(),
+            "timings": {k: round(v, 4) for k, v in self.timings.items()},
+            "counts": self.counts,
+            "device": self.device,
+            "seed": self.seed,
+            "version": self.version,
+            "input": self.input,
+            "normalization": self.normalizer.to_dict(),
+            "loss_history": self.history,
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write the mesh (format by suffix) and the sidecar ``path.with_suffix('.json')``, atomically.
+        Returns the sidecar path."""
+        if self.mesh is None:
+            raise RuntimeError("no mesh to save: the reconstruction failed")
+        path = Path(path)
+        sidecar = path.with_suffix(".json")
+        save_mesh(self.mesh, path)
+        save_json(self.sidecar(), sidecar)
+        return sidecar
+
+
+def resolve_device(device: str | torch.device) -> torch.device:
+    """``auto`` → CUDA if available, else CPU; anything else must be usable here."""
+    if str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("device 'cuda' requested but no CUDA device is available (use --device cpu)")
+    return dev
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.device = "auto",
+                seed: int = 42, method: str = "ultraboneudf", *, config: Config | None = None,
+                assignments: list[str] | tuple[str, ...] = (), progress: Progress | None = None,
+                quiet: bool = True, source: str = "points", **overrides: Any) -> Reconstruction:
+    """Reconstruct a bone surface mesh from a point cloud in millimetres.
+
+    Parameters
+    ----------
+    points_mm : (N, 3) array-like, millimetres in the input's frame.
+    preset : ``official`` (the reference code), ``paper`` (the paper's text) or ``fast``.
+    device : ``auto``, ``cpu``, ``cuda`` or a torch device.
+    seed : seeds every random draw; same input, config, seed and device give the same mesh.
+    method : a name from :data:`ultraboneudf.methods.METHODS`.
+    config : a full :class:`Config` to use instead of the preset.
+    assignments, overrides : ``"section.key=value"`` strings and keyword overrides of the preset
+        (``iters=1000``, ``extract__max_depth=8``).
+    progress / quiet : a :class:`Progress` to report to, or ``quiet=False`` for a default one.
+    """
+    t_start = time.perf_counter()
+    progress = progress or Progress(quiet=quiet)
+    cfg = config if config is not None else make_preset(preset)
+    apply_overrides(cfg, overrides, assignments)
+    fit = get_method(method)
+    dev = resolve_device(device)
+    points = validate_points(points_mm, source=source)
+    seed_everything(seed)
+
+    t0 = time.perf_counter()
+    if cfg.data.noise_sigma_mm > 0:
+        points = points + np.random.default_rng(seed + 1).normal(0.0, cfg.data.noise_sigma_mm, points.shape)
+    voxelised = voxel_downsample(points, cfg.data.voxel_size_mm)
+    normalizer = Normalizer.fit(voxelised)
+    unit_points = normalizer.forward(voxelised)
+    voxel_s = time.perf_counter() - t0
+
+    fitted = fit(unit_points, cfg, dev, seed, progress)
+    from .extraction import extract_mesh  # TEMP lazy until extraction lands
+
+    t1 = time.perf_counter()
+    if fitted.mesh is not None:
+        unit_mesh = fitted.mesh
+    elif fitted.field is not None:
+        unit_mesh = extract_mesh(fitted.field, cfg.extract, progress)
+    else:
+        unit_mesh = None
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+    extract_s = time.perf_counter() - t1
+    mesh = normalizer.inverse_mesh(unit_mesh) if unit_mesh is not None else None
+
+    timings = {
+        "preprocess_s": voxel_s + fitted.timings.get("preprocess_s", 0.0),
+        "train_s": fitted.timings.get("train_s", 0.0),
+        "extract_s": extract_s,
+    }
+    timings["total_s"] = time.perf_counter() - t_start
+    counts = {"input_points": len(points), "voxelized_points": len(voxelised), **fitted.counts,
+              "vertices": 0 if mesh is None else len(mesh.vertices),
+              "faces": 0 if mesh is None else len(mesh.faces)}
+    return Reconstruction(mesh=mesh, method=method, preset=preset if config is None else "custom",
+                          config=cfg, timings=timings, counts=counts, device=str(dev), seed=seed,
+                          normalizer=normalizer, history=fitted.history)

@@ -1,0 +1,138 @@
+"""The per-scan optimisation loop (§0.5, §0.6, §1.7).
+
+Everything stays on the training device: the batch draw, the dynamic nearest neighbour (chunked
+brute force on a GPU), the loss and the optimiser step. The only host reads are the progress
+ticks and the loss history, which is kept as device tensors and read once at the end.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+from .config import LossConfig, TrainConfig
+from .fields.base import normalize
+from .fields.mlp import value_and_grad
+from .geometry.neighbors import NearestIndex
+from .losses import (eikonal_loss, global_shape_loss, on_surface_loss, pull_loss, tangent_loss,
+                     tangent_residual)
+from .progress import QUIET, Progress
+
+
+def learning_rate(i: int, lr0: float, warmup: int, total: int) -> float:
+    """Warm-up + cosine schedule of §0.6 for the 0-based iteration ``i`` (``lr(0) = 0``)."""
+    if i < warmup:
+        return lr0 * i / warmup
+    return lr0 * 0.5 * (1.0 + math.cos(math.pi * (i - warmup) / max(1, total - warmup)))
+
+
+class StridedSampler:
+    """The reference's batch draw (§0.5): one residue ``r`` mod 10 and ``K`` distinct ``j`` in
+    ``[0, R)``, ``R = ⌊(T − 1)/10⌋``; indices ``10·j + r``. Draws on ``device`` from ``generator``."""
+
+    def __init__(self, total: int, batch: int, generator: torch.Generator, device: torch.device) -> None:
+        self.rows = (total - 1) // 10
+        if self.rows < 1:
+            raise ValueError(f"too few stored queries ({total}) for the strided sampler")
+        self.batch = min(batch, self.rows)
+        self.generator = generator
+        self.device = device
+
+    def __call__(self) -> torch.Tensor:
+        r = torch.randint(0, 10, (1,), generator=self.generator, device=self.device)
+        j = torch.randperm(self.rows, generator=self.generator, device=self.device)[: self.batch]
+        return 10 * j + r
+
+
+@dataclass
+class TrainingData:
+    """Unit-space training samples on the training device."""
+
+    surface: torch.Tensor            # (N, 3) surface rows P
+    queries: torch.Tensor            # (T, 3)
+    anchors: torch.Tensor            # (G, 3)
+    anchor_targets: torch.Tensor     # (G,)
+    static_targets: torch.Tensor | None = None  # (T, 3) t(q), only for the pull loss
+
+
+@dataclass
+class TrainResult:
+    seconds: float
+    iterations: int
+    history: dict[str, list[float]] = field(default_factory=dict)
+
+
+def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: TrainingData,
+               cfg: LossConfig, nn_index: NearestIndex) -> dict[str, torch.Tensor]:
+    """All active loss terms for one batch of queries ``q`` (K, 3) (rows ``batch`` of the store),
+    plus ``total``. Pure function of the network's current weights."""
+    u, g = value_and_grad(net, q, create_graph=True)
+    g_hat = normalize(g)
+    moved = q - u[:, None] * g_hat
+    terms: dict[str, torch.Tensor] = {}
+    if cfg.kind == "tangent":
+        foot = data.surface[nn_index.query(moved).to(data.surface.device)]
+        terms["tangent"] = tangent_loss(tangent_residual(q, u, g_hat, foot), cfg.tangent_norm)
+        total = cfg.lambda_tangent * terms["tangent"]
+    elif cfg.kind == "pull":
+        terms["pull"] = pull_loss(moved, data.static_targets[batch])
+        total = terms["pull"]
+    else:
+        raise ValueError(f"unknown loss kind {cfg.kind!r}")
+    if cfg.lambda_gs and len(data.anchors):
+        terms["gs"] = global_shape_loss(net(data.anchors), data.anchor_targets)
+        total = total + cfg.lambda_gs * terms["gs"]
+    if cfg.lambda_os or cfg.lambda_eik:
+        need_grad = bool(cfg.lambda_eik)
+        p = data.surface.detach().clone().requires_grad_(need_grad)
+        if need_grad:
+            u_p, g_p = value_and_grad(net, p, create_graph=True)
+        else:
+            u_p = net(p)
+        if cfg.lambda_os:
+            terms["os"] = on_surface_loss(u_p)
+            total = total + cfg.lambda_os * terms["os"]
+        if cfg.lambda_eik:
+            terms["eik"] = eikonal_loss(g_p, g)
+            total = total + cfg.lambda_eik * terms["eik"]
+    terms["total"] = total
+    return terms
+
+
+def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: TrainConfig,
+          seed: int, progress: Progress = QUIET, log_every: int = 100) -> TrainResult:
+    """Optimise ``net`` in place on ``data`` for ``train_cfg.iters`` iterations (Adam, §1.7)."""
+    device = data.queries.device
+    generator = torch.Generator(device=device).manual_seed(seed)
+    sampler = StridedSampler(len(data.queries), train_cfg.batch, generator, device)
+    nn_index = NearestIndex(data.surface)
+    opt = torch.optim.Adam(net.parameters(), lr=0.0, betas=(0.9, 0.999), eps=1e-8, weight_decay=0.0)
+    history: dict[str, list[torch.Tensor]] = {}
+    iters = train_cfg.iters
+    tick = max(1, min(50, iters // 100))
+    net.train()
+    start = time.perf_counter()
+    with progress.stage("training", iters) as advance:
+        for i in range(iters):
+            for group in opt.param_groups:
+                group["lr"] = learning_rate(i, train_cfg.lr, train_cfg.warmup, iters)
+            batch = sampler()
+            opt.zero_grad(set_to_none=True)
+            terms = loss_terms(net, data.queries[batch], batch, data, loss_cfg, nn_index)
+            terms["total"].backward()
+            opt.step()
+            if i % log_every == 0 or i == iters - 1:
+                for key, value in terms.items():
+                    history.setdefault(key, []).append(value.detach())
+            if (i + 1) % tick == 0:
+                advance(tick)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    seconds = time.perf_counter() - start
+    net.eval()
+    return TrainResult(seconds=seconds, iterations=iters,
+                       history={k: torch.stack(v).cpu().tolist() for k, v in history.items()})
