@@ -1,0 +1,142 @@
+"""End-to-end reconstruction benchmark: seconds per stage, iterations per second, peak memory and
+Chamfer distance, per preset and device.
+
+Input: the open femur of issue #3 — the faces of ``femur.ply`` whose normal has a positive z
+component, 100,000 area samples (mm) — or the built-in phantom. Accuracy: CD = ½(mean A→B + mean B→A)
+nearest-neighbour distance over ``--samples`` area samples of each mesh, HD95 = max of the two
+directed 95th percentiles (mm).
+
+    python benchmarks/bench_reconstruct.py --presets official,fast --devices cpu
+    python benchmarks/bench_reconstruct.py --presets fast --input phantom --iters 500
+
+Each configuration runs in a fresh subprocess, so peak host memory (max RSS) is its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+BONES = Path(os.environ.get("ULTRABONEUDF_BONES", Path(__file__).resolve().parents[2] / "shared/data/bones"))
+
+
+def make_input(name: str, seed: int = 0):
+    """(points mm (N,3), truth mesh) for ``femur`` (open, z-facing) or ``phantom``."""
+    from ultraboneudf import load_mesh
+    from ultraboneudf.synth import bone_phantom, facing_surface, sample_surface
+
+    if name == "phantom":
+        ph = bone_phantom(seed=seed)
+        return ph.points, ph.truth
+    bone = BONES / f"{name}.ply"
+    truth = facing_surface(load_mesh(bone), (0.0, 0.0, 1.0))
+    return sample_surface(truth, 100_000, seed=seed), truth
+
+
+def run_one(args: argparse.Namespace) -> dict:
+    """One preset on one device; returns a JSON-able row."""
+    import torch
+
+    import ultraboneudf
+    from ultraboneudf.evaluation import evaluate
+
+    torch.set_num_threads(args.threads or torch.get_num_threads())
+    points, truth = make_input(args.input)
+    overrides = {"train.iters": args.iters} if args.iters else {}
+    if args.device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    t0 = time.perf_counter()
+    rec = ultraboneudf.reconstruct(points, preset=args.preset, device=args.device, seed=args.seed,
+                                   quiet=not args.verbose, assignments=args.set, **overrides)
+    wall = time.perf_counter() - t0
+    row = {"preset": args.preset, "device": rec.device, "input": args.input, "points": len(points),
+           "iters": rec.config.train.iters, **{k: round(v, 2) for k, v in rec.timings.items()},
+           "wall_s": round(wall, 2),
+           "it_per_s": round(rec.config.train.iters / max(rec.timings["train_s"], 1e-9), 1),
+           "peak_host_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 0),
+           "peak_gpu_mb": (round(torch.cuda.max_memory_allocated() / 2**20, 0)
+                           if args.device.startswith("cuda") else None),
+           "faces": rec.counts["faces"], "set": args.set}
+    if rec.mesh is None:
+        row.update(cd_mm=None, hd95_mm=None, failed=True)
+    else:
+        res = evaluate(rec.mesh, truth, samples=args.samples, seed=0)
+        row.update(cd_mm=round(res.cd_mm, 4), hd95_mm=round(res.hd95_mm, 4),
+                   area_ratio=round(float(rec.mesh.area / truth.area), 3))
+        if args.save:
+            Path(args.save).parent.mkdir(parents=True, exist_ok=True)
+            rec.save(args.save)
+    return row
+
+
+def print_table(rows: list[dict]) -> None:
+    cols = ["preset", "device", "iters", "preprocess_s", "train_s", "extract_s", "total_s", "it_per_s",
+            "peak_host_mb", "peak_gpu_mb", "faces", "area_ratio", "cd_mm", "hd95_mm"]
+    print("| " + " | ".join(cols) + " |")
+    print("|" + "---|" * len(cols))
+    for r in rows:
+        print("| " + " | ".join("" if r.get(c) is None else str(r.get(c)) for c in cols) + " |")
+    base = {r["device"]: r for r in rows if r["preset"] == "official" and r.get("total_s")}
+    for r in rows:
+        ref = base.get(r["device"])
+        if ref and r is not ref and r.get("total_s"):
+            print(f"{r['preset']} on {r['device']}: {ref['total_s'] / r['total_s']:.1f}x faster than official, "
+                  f"CD {r['cd_mm']} vs {ref['cd_mm']} mm")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--presets", default="fast,official")
+    p.add_argument("--devices", default="cpu")
+    p.add_argument("--input", default="femur", help="femur, tibia, pelvis, talus (z-facing open part) or phantom")
+    p.add_argument("--iters", type=int, default=None, help="override the preset's iterations")
+    p.add_argument("--samples", type=int, default=1_000_000, help="area samples per mesh for CD/HD95")
+    p.add_argument("--seed", type=int, default=42)
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--json", type=Path, help="also write the rows as JSON")
+    p.add_argument("--save", default=None, help="(single run) write the mesh and sidecar here")
+    p.add_argument("--verbose", action="store_true", help="show progress bars")
+    p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--preset", help=argparse.SUPPRESS)
+    p.add_argument("--device", help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.one:
+        print("ROW " + json.dumps(run_one(args)), flush=True)
+        return
+    rows = []
+    for device in args.devices.split(","):
+        for name in args.presets.split(","):
+            cmd = [sys.executable, __file__, "--one", "--preset", name, "--device", device, "--input", args.input,
+                   "--samples", str(args.samples), "--seed", str(args.seed)]
+            for flag, value in (("--iters", args.iters), ("--threads", args.threads), ("--save", args.save)):
+                if value:
+                    cmd += [flag, str(value)]
+            for item in args.set:
+                cmd += ["--set", item]
+            if args.verbose:
+                cmd.append("--verbose")
+            out = subprocess.run(cmd, capture_output=not args.verbose, text=True, check=False,
+                                 stdout=subprocess.PIPE)
+            line = [ln for ln in out.stdout.splitlines() if ln.startswith("ROW ")]
+            if not line:
+                print(f"{name} on {device} failed:\n{out.stderr}", file=sys.stderr)
+                continue
+            rows.append(json.loads(line[-1][4:]))
+            print(json.dumps(rows[-1]), file=sys.stderr)
+    print_table(rows)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=2))
+
+
+if __name__ == "__main__":
+    np.set_printoptions(precision=4)
+    main()

@@ -1,0 +1,92 @@
+"""The command line: exit codes, one-line errors, no partial outputs."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from ultraboneudf.cli import main
+
+SMALL = ["--iters", "300", "--set", "train.batch=1000", "--set", "extract.max_depth=7",
+         "--set", "model.hidden=64,64,64", "--quiet"]
+
+
+def _cloud(path, n=2000):
+    rng = np.random.default_rng(0)
+    theta = rng.uniform(np.pi / 4, 3 * np.pi / 4, n)
+    np.savetxt(path, np.c_[20 * np.cos(theta), rng.uniform(0, 40, n), 20 * np.sin(theta)])
+    return path
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "ultraboneudf.cli", *map(str, args)],
+                          capture_output=True, text=True)
+
+
+def test_version_and_help():
+    out = run_cli("--version")
+    assert out.returncode == 0 and out.stdout.startswith("ultraboneudf ")
+    for cmd in ("reconstruct", "demo"):
+        out = run_cli(cmd, "--help")
+        assert out.returncode == 0 and "--preset" in out.stdout
+
+
+def test_reconstruct_writes_mesh_and_sidecar(tmp_path):
+    src = _cloud(tmp_path / "in.xyz")
+    before = src.read_bytes()
+    assert main(["reconstruct", str(src), "-o", str(tmp_path / "out.ply"), "--preset", "fast", *SMALL]) == 0
+    side = json.loads((tmp_path / "out.json").read_text())
+    assert side["counts"]["parameters"] == 64 * 5 + 64 * 66 * 2 + 66
+    assert side["config"]["train"]["iters"] == 300 and side["preset"] == "fast"
+    assert side["input"]["path"].endswith("in.xyz") and len(side["input"]["sha256"]) == 64
+    assert src.read_bytes() == before                       # the input is never modified
+
+
+@pytest.mark.parametrize("case,message", [
+    ("missing", "no such file"), ("ext", "unknown point cloud extension"), ("line", "line 7"),
+    ("nan", "NaN"), ("few", "only 50 points"), ("same", "identical"), ("line3d", "collinear"),
+    ("outext", "unknown mesh extension"), ("set", "unknown config key"),
+])
+def test_bad_input_one_line_exit_2_no_output(tmp_path, case, message):
+    src = tmp_path / "in.xyz"
+    pts = np.random.default_rng(1).random((300, 3))
+    out = tmp_path / "out.ply"
+    extra = []
+    if case == "missing":
+        src = tmp_path / "nothing.xyz"
+    elif case == "ext":
+        src = tmp_path / "in.las"
+        src.write_text("1 2 3\n")
+    elif case == "line":
+        lines = [f"{a} {b} {c}" for a, b, c in pts]
+        lines[6] = "1 2 x"
+        src.write_text("\n".join(lines))
+    elif case == "nan":
+        pts[10, 0] = np.nan
+        np.savetxt(src, pts)
+    elif case == "few":
+        np.savetxt(src, pts[:50])
+    elif case == "same":
+        np.savetxt(src, np.ones((300, 3)))
+    elif case == "line3d":
+        np.savetxt(src, np.linspace(0, 1, 300)[:, None] * [1, 2, 3])
+    elif case == "outext":
+        np.savetxt(src, pts)
+        out = tmp_path / "out.vtk"
+    elif case == "set":
+        np.savetxt(src, pts)
+        extra = ["--set", "train.bogus=1"]
+    res = run_cli("reconstruct", src, "-o", out, "--quiet", *extra)
+    assert res.returncode == 2, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0] and "Traceback" not in res.stderr
+    if case != "missing":
+        assert str(src.name) in lines[0] or case in ("outext", "set")
+    assert not out.exists() and not out.with_suffix(".json").exists()
+
+
+def test_usage_error_exit_2():
+    assert run_cli("reconstruct").returncode == 2
+    assert run_cli("bogus-command").returncode == 2
