@@ -116,6 +116,18 @@ class ExtractConfig:
     """The octree cube [lo, hi]³ in unit space."""
     mode: str = "faithful"
     """``faithful`` reproduces DualMesh-UDF; ``clean`` returns a one-layer manifold-edged mesh."""
+    clean_crossing: float = 0.5
+    """Clean mode: a leaf-lattice edge whose end gradients oppose counts as crossed only if the UDF
+    at the estimated crossing is below ``clean_crossing × leaf edge + margin``."""
+    clean_vertex: str = "qef"
+    """Clean mode vertex: ``qef`` (the §2.6 vertex of the leaf if within ``clean_qef_window`` cells
+    of it, else the mean of the leaf's crossing points) or ``mass`` (always that mean)."""
+    clean_qef_window: float = 0.5
+    """Clean mode: how far (in leaf cells) outside its leaf a QEF vertex may lie and still be used."""
+    clean_project_steps: int = 2
+    """Clean mode: projection steps x ← x − α·u·∇u/|∇u| moving vertices onto the zero set; 0 = none."""
+    clean_merge: float = 1e-6
+    """Clean mode: vertices that round to the same point of a grid of this many leaf cells merge."""
 
 
 @dataclass
@@ -160,6 +172,7 @@ def _paper() -> Config:
     cfg.loss.tangent_norm = "l2"
     # 256 cells across the object (depth 9 on [−1, 1]³) with the official DMU thresholds (§1.11).
     cfg.extract = ExtractConfig(**{**DMU_DEFAULTS, "max_depth": 9})
+    cfg.extract.mode = "clean"  # one-layer, edge-manifold mesh (issue #8); "faithful" reproduces DMU
     return cfg
 
 
@@ -177,6 +190,7 @@ def _fast() -> Config:
     cfg.train.warmup = 100
     cfg.train.lr = 2e-3
     cfg.extract.max_depth = 8
+    cfg.extract.mode = "clean"
     return cfg
 
 

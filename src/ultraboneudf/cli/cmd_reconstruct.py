@@ -9,14 +9,10 @@ from pathlib import Path
 import numpy as np
 
 from ..config import PRESETS
-from ..errors import InputError
 from ..io import check_mesh_path, load_points, sha256_file
 from ..methods import METHODS
 from ..pipeline import reconstruct
 from ..progress import Progress
-
-SWEEP_SUFFIXES = (".mha", ".mhd", ".nrrd")
-
 
 def add_run_options(p: argparse.ArgumentParser, default_preset: str) -> None:
     """Options shared by ``reconstruct`` and ``demo``."""
@@ -45,13 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def read_input(path: Path, progress: Progress) -> np.ndarray:
     """Points (mm) from a cloud file, or compounded from a sweep (a folder or a sequence file)."""
-    if path.is_dir() or path.name.lower().endswith(SWEEP_SUFFIXES):
-        if not path.exists():
-            raise InputError(f"{path}: no such file or folder")
-        try:
-            from ..sweep import points_from_sweep
-        except ImportError:
-            raise InputError(f"{path}: reading sweeps needs the ultraboneudf.sweep module") from None
+    from ..sweep import is_sweep_path, points_from_sweep
+
+    if path.exists() and is_sweep_path(path):
         return points_from_sweep(path, progress=progress)
     return load_points(path)
 

@@ -1,0 +1,163 @@
+"""``ultraboneudf sweep2points SWEEP -o POINTS``: tracked sweep → bone point cloud in mm."""
+
+from __future__ import annotations
+
+import argparse
+import io
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..io import atomic_write_bytes
+from ..progress import Progress
+
+POINT_SUFFIXES = (".ply", ".npz", ".npy", ".xyz", ".txt", ".csv")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "sweep2points", help="tracked ultrasound sweep → bone point cloud (mm)",
+        description="Read a tracked sweep (a folder in the UltraBones100k layout: frames/*.png, "
+                    "poses.csv, calibration.json; a PLUS .mha/.mhd; a Slicer .seq.nrrd), segment the "
+                    "bone in every frame (its masks, the classical detector, or your TorchScript/ONNX "
+                    "model), map the bone pixels to world millimetres through the pose and calibration "
+                    "chain, and write the point cloud with each point's frame index.")
+    p.add_argument("sweep", type=Path, help="sweep folder or sequence file")
+    p.add_argument("-o", "--output", type=Path, required=True,
+                   help="output cloud: .ply (x y z + frame, beam, probe), .npz (all arrays), .npy, "
+                        ".xyz/.txt/.csv (x y z frame)")
+    p.add_argument("--segment", default="auto",
+                   help="auto (the sweep's masks if any, else classical), masks, classical, or the "
+                        "path of a TorchScript (.pt) / ONNX (.onnx) model (default: auto)")
+    p.add_argument("--masks", type=Path, default=None,
+                   help="bone masks for the frames: folder of PNGs (matched by name or order), .npy or "
+                        ".npz (F×H×W)")
+    p.add_argument("--mask-dir", default=None,
+                   help="UltraBones100k layout: sub-folder of masks to use (default: masks)")
+    p.add_argument("--transform", default=None,
+                   help="MetaIO/NRRD: per-frame transform name (default: ImageToReference)")
+    p.add_argument("--all-pixels", action="store_true",
+                   help="keep every mask pixel (default: only the top boundary of each scan line, "
+                        "the bone surface)")
+    p.add_argument("--no-outliers", action="store_true", help="skip statistical outlier removal")
+    p.add_argument("--outlier-k", type=int, default=16, help="outlier removal: neighbours (default 16)")
+    p.add_argument("--outlier-std", type=float, default=2.0,
+                   help="outlier removal: threshold in standard deviations (default 2.0)")
+    p.add_argument("--frame-step", type=int, default=1, help="use every N-th frame (default 1)")
+    p.add_argument("--detector", action="append", default=[], metavar="KEY=VALUE",
+                   help="classical detector option (mm), e.g. --detector high=0.4; repeatable")
+    p.add_argument("--threshold", type=float, default=0.5,
+                   help="learned model: probability threshold (default 0.5)")
+    p.add_argument("--overlays", type=Path, default=None,
+                   help="also write segmentation overlay contact sheets (PNG) to this folder")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=run)
+
+
+def _parse_kv(items: list[str]) -> dict[str, float]:
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise InputError(f"--detector {item!r}: expected KEY=VALUE")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = float(v)
+        except ValueError:
+            raise InputError(f"--detector {item!r}: {v!r} is not a number") from None
+    return out
+
+
+def encode_points(path: Path, cp) -> bytes:
+    """Bytes of the point file for ``path``'s suffix (see ``--output``)."""
+    suffix = path.suffix.lower()
+    pts = cp.points
+    if suffix == ".ply":
+        n = len(pts)
+        dtype = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("frame", "<i4"),
+                          ("beam_x", "<f4"), ("beam_y", "<f4"), ("beam_z", "<f4"),
+                          ("probe_x", "<f8"), ("probe_y", "<f8"), ("probe_z", "<f8")])
+        rec = np.empty(n, dtype=dtype)
+        rec["x"], rec["y"], rec["z"] = pts.T
+        rec["frame"] = cp.frame_index
+        rec["beam_x"], rec["beam_y"], rec["beam_z"] = cp.beam_direction.T
+        rec["probe_x"], rec["probe_y"], rec["probe_z"] = cp.probe_position.T
+        header = ["ply", "format binary_little_endian 1.0",
+                  "comment bone points compounded from a tracked ultrasound sweep (ultraboneudf), mm",
+                  "comment frame: source frame index; beam: unit beam direction; probe: scan-line origin",
+                  f"element vertex {n}", "property double x", "property double y", "property double z",
+                  "property int frame", "property float beam_x", "property float beam_y",
+                  "property float beam_z", "property double probe_x", "property double probe_y",
+                  "property double probe_z", "end_header"]
+        return ("\n".join(header) + "\n").encode("ascii") + rec.tobytes()
+    if suffix == ".npz":
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **cp.as_dict())
+        return buf.getvalue()
+    if suffix == ".npy":
+        buf = io.BytesIO()
+        np.save(buf, pts)
+        return buf.getvalue()
+    sep = "," if suffix == ".csv" else " "
+    lines = ["x,y,z,frame"] if suffix == ".csv" else []
+    lines += [f"{x:.6f}{sep}{y:.6f}{sep}{z:.6f}{sep}{f}" for (x, y, z), f in zip(pts, cp.frame_index)]
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def _write_overlays(sweep, masks: np.ndarray, folder: Path) -> list[Path]:
+    from ..sweep.figures import contact_sheet, overlay, save_png
+
+    if sweep.images is None:
+        return []
+    written = []
+    per_sheet = 30
+    for s in range(0, sweep.n_frames, per_sheet):
+        idx = range(s, min(sweep.n_frames, s + per_sheet))
+        tiles = [overlay(sweep.images[i], masks[i], dilate=max(1, sweep.height // 300)) for i in idx]
+        path = folder / f"overlay_{s // per_sheet:03d}.png"
+        save_png(contact_sheet(tiles, [Path(sweep.frame_names[i]).name for i in idx], columns=6,
+                               tile_width=320), path, max_colours=128)
+        written.append(path)
+    return written
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..sweep import read_sweep, segment_sweep, sweep_to_points
+    from ..sweep.readers.images import load_mask_stack
+
+    progress = Progress(quiet=args.quiet)
+    out: Path = args.output
+    if out.suffix.lower() not in POINT_SUFFIXES:
+        raise InputError(f"{out}: unknown point cloud extension {out.suffix!r}; use one of "
+                         f"{', '.join(POINT_SUFFIXES)}")
+    if args.frame_step < 1:
+        raise InputError(f"--frame-step must be ≥ 1, got {args.frame_step}")
+    read_options = {}
+    if args.mask_dir is not None:
+        read_options["mask_dir"] = args.mask_dir
+    if args.transform is not None:
+        read_options["transform"] = args.transform
+    with progress.stage("read sweep", None):
+        sweep = read_sweep(args.sweep, **read_options)
+    if args.masks is not None:
+        sweep = sweep.with_masks(load_mask_stack(args.masks, sweep.n_frames, sweep.image_size,
+                                                 [Path(n).stem for n in sweep.frame_names]))
+    if args.frame_step > 1:
+        sweep = sweep.subset(np.arange(0, sweep.n_frames, args.frame_step))
+    detector = _parse_kv(args.detector)
+    masks, method = segment_sweep(sweep, args.segment, detector, {"threshold": args.threshold}, progress)
+    cp = sweep_to_points(sweep.with_masks(masks), segment="masks", top_only=not args.all_pixels,
+                         remove_outliers=not args.no_outliers, outlier_k=args.outlier_k,
+                         outlier_std=args.outlier_std, progress=progress)
+    if args.frame_step > 1:
+        cp.frame_index = cp.frame_index * args.frame_step
+    atomic_write_bytes(out, encode_points(out, cp))
+    frames_with_bone = len(np.unique(cp.frame_index))
+    lo, hi = cp.points.min(axis=0), cp.points.max(axis=0)
+    print(f"sweep2points: {len(cp)} points from {frames_with_bone}/{sweep.n_frames} frames "
+          f"(segmentation: {method}); extent {np.round(hi - lo, 1).tolist()} mm; wrote {out}")
+    if args.overlays is not None:
+        written = _write_overlays(sweep, masks, args.overlays)
+        if written:
+            print(f"sweep2points: wrote {len(written)} overlay sheet(s) to {args.overlays}")
+    return 0

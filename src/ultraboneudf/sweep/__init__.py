@@ -1,0 +1,28 @@
+"""Tracked freehand ultrasound sweeps → bone point clouds in millimetres.
+
+>>> from ultraboneudf.sweep import read_sweep, sweep_to_points, points_from_sweep
+>>> sweep = read_sweep("sweep_dir")                          # doctest: +SKIP
+>>> cp = sweep_to_points(sweep, segment="classical")          # doctest: +SKIP
+>>> cp.points, cp.frame_index, cp.beam_direction              # doctest: +SKIP
+
+Pieces: :class:`Sweep` (frames + poses in memory), readers/writers by layout
+(:func:`read_sweep`, :func:`write_sweep`: UltraBones100k folders, PLUS ``.mha``/``.mhd``, Slicer
+``.seq.nrrd``), :class:`BoneDetector` (classical segmentation), :class:`LearnedSegmenter`
+(TorchScript/ONNX plug-in), :func:`compound` (mask pixels → world mm), outlier removal.
+"""
+
+from .compound import CompoundedPoints, compound, top_boundary
+from .learned import LearnedSegmenter, load_model
+from .model import Sweep, SweepWarning
+from .outliers import radius_outlier_mask, statistical_outlier_mask
+from .points import points_from_sweep, segment_sweep, sweep_to_points
+from .readers import LAYOUTS, detect_layout, is_sweep_path, read_sweep, write_sweep
+from .segment import BoneDetector, segment_bone
+from .transforms import check_rigid, pixels_to_world, rigid_from_euler
+
+__all__ = [
+    "Sweep", "SweepWarning", "read_sweep", "write_sweep", "detect_layout", "is_sweep_path", "LAYOUTS",
+    "BoneDetector", "segment_bone", "LearnedSegmenter", "load_model", "segment_sweep",
+    "CompoundedPoints", "compound", "top_boundary", "statistical_outlier_mask", "radius_outlier_mask",
+    "sweep_to_points", "points_from_sweep", "rigid_from_euler", "check_rigid", "pixels_to_world",
+]

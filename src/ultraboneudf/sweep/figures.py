@@ -1,0 +1,160 @@
+"""Quality-control pictures for sweeps (Pillow only): segmentation overlays, contact sheets and
+a point-cloud splat render. Used by ``sweep2points --overlays`` and the docs figures."""
+
+from __future__ import annotations
+
+import io
+import os
+from typing import Sequence
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from ..io import atomic_write_bytes
+
+FRAME_COLOURS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98],
+                          [253, 231, 37]], dtype=np.float64)
+"""A viridis-like ramp (5 stops) for colouring by frame index."""
+
+
+def ramp(t: np.ndarray) -> np.ndarray:
+    """``(N,)`` values in [0, 1] → ``(N, 3)`` uint8 colours along :data:`FRAME_COLOURS`."""
+    t = np.clip(np.asarray(t, dtype=np.float64), 0.0, 1.0) * (len(FRAME_COLOURS) - 1)
+    i = np.minimum(t.astype(int), len(FRAME_COLOURS) - 2)
+    f = (t - i)[:, None]
+    return np.rint(FRAME_COLOURS[i] * (1 - f) + FRAME_COLOURS[i + 1] * f).astype(np.uint8)
+
+
+def overlay(image: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int] = (255, 40, 40),
+            truth: np.ndarray | None = None, dilate: int = 1) -> Image.Image:
+    """RGB picture of a grey frame with ``mask`` drawn in ``colour`` (and ``truth`` in green).
+
+    ``dilate`` thickens the drawn lines by that many pixels each way so thin masks stay visible
+    after down-scaling.
+    """
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        img = np.clip(img.astype(np.float64) / max(float(img.max()), 1.0) * 255, 0, 255).astype(np.uint8)
+    rgb = np.repeat(img[..., None], 3, axis=2).copy()
+
+    def thick(m: np.ndarray) -> np.ndarray:
+        m = np.asarray(m, dtype=bool)
+        out = m.copy()
+        for dy in range(-dilate, dilate + 1):
+            out |= np.roll(m, dy, axis=0)
+        return out
+
+    if truth is not None:
+        rgb[thick(truth)] = (40, 220, 60)
+    rgb[thick(mask)] = colour
+    return Image.fromarray(rgb)
+
+
+def contact_sheet(tiles: Sequence[Image.Image], labels: Sequence[str] | None = None,
+                  columns: int = 5, tile_width: int = 320) -> Image.Image:
+    """Grid of pictures scaled to ``tile_width`` pixels wide, each with an optional label."""
+    scaled = []
+    for k, t in enumerate(tiles):
+        h = max(1, round(t.size[1] * tile_width / t.size[0]))
+        im = t.convert("RGB").resize((tile_width, h), Image.BILINEAR)
+        if labels is not None:
+            ImageDraw.Draw(im).text((4, 3), str(labels[k]), fill=(255, 255, 0))
+        scaled.append(im)
+    th = max(im.size[1] for im in scaled)
+    rows = (len(scaled) + columns - 1) // columns
+    sheet = Image.new("RGB", (columns * tile_width, rows * th), (0, 0, 0))
+    for k, im in enumerate(scaled):
+        sheet.paste(im, ((k % columns) * tile_width, (k // columns) * th))
+    return sheet
+
+
+def _splat(u: np.ndarray, v: np.ndarray, depth: np.ndarray, colours: np.ndarray,
+           size: tuple[int, int], point_px: int) -> np.ndarray:
+    """Draw points at pixel coordinates ``(u, v)``, nearest (largest ``depth``) on top, shaded."""
+    w, h = size
+    img = np.zeros((h, w, 3))
+    order = np.argsort(depth)
+    shade = 0.5 + 0.5 * (depth - depth.min()) / max(float(np.ptp(depth)), 1e-12)
+    col = np.clip(colours * shade[:, None], 0, 255)[order]
+    xi, yi = np.rint(u[order]).astype(int), np.rint(v[order]).astype(int)
+    for dx in range(point_px):
+        for dy in range(point_px):
+            xx, yy = xi + dx, yi + dy
+            ok = (xx >= 0) & (xx < w) & (yy >= 0) & (yy < h)
+            img[yy[ok], xx[ok]] = col[ok]
+    return img.astype(np.uint8)
+
+
+def render_points(points: np.ndarray, values: np.ndarray | None = None, width: int = 1000,
+                  panel_height: int = 240, point_px: int = 2, title: str = "",
+                  max_exaggeration: float = 12.0) -> Image.Image:
+    """Orthographic splat render of a point cloud (mm), three panels stacked.
+
+    With principal axes ``a1`` (longest), ``a2``, ``a3`` of the cloud: the top panel looks along
+    ``a3`` (the cloud's face), the middle along ``a2`` (its profile), both with ``a1`` horizontal;
+    their vertical axis may be stretched (labelled "vertical ×k") so long thin strips stay
+    readable. The bottom panel is the cross-section seen along ``a1`` at true scale. Points are
+    coloured by ``values`` (e.g. frame index, dark → light) and shaded by depth; 10 mm scale bars.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    centred = pts - pts.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred[:: max(1, len(pts) // 100_000)], full_matrices=False)
+    q = centred @ vt.T
+    lo, hi = np.percentile(q, 0.2, axis=0), np.percentile(q, 99.8, axis=0)
+    ext = np.maximum(hi - lo, 1e-6)
+    mid = (hi + lo) / 2
+    t = np.zeros(len(pts)) if values is None else np.asarray(values, dtype=np.float64)
+    t = (t - t.min()) / max(float(t.max() - t.min()), 1e-12)
+    colours = ramp(t).astype(np.float64)
+    margin = 24
+    panels = []
+    for a_v, a_d, name in ((1, 2, "face (along a3)"), (2, 1, "profile (along a2)")):
+        s_u = (width - 2 * margin) / ext[0]
+        s_v = (panel_height - 2 * margin) / ext[a_v]
+        if s_v < s_u:
+            s_u = s_v
+        s_v = min(s_v, s_u * max_exaggeration)
+        u = (q[:, 0] - mid[0]) * s_u + width / 2
+        v = -(q[:, a_v] - mid[a_v]) * s_v + panel_height / 2
+        panel = Image.fromarray(_splat(u, v, q[:, a_d], colours, (width, panel_height), point_px))
+        d = ImageDraw.Draw(panel)
+        exag = s_v / s_u
+        label = name + (f", vertical x{exag:.1f}" if exag > 1.05 else "")
+        d.text((8, 6), label, fill=(200, 200, 200))
+        y0 = panel_height - 12
+        d.line([(margin, y0), (margin + 10 * s_u, y0)], fill=(255, 255, 255), width=3)
+        d.text((margin, y0 - 14), "10 mm", fill=(255, 255, 255))
+        panels.append(panel)
+    # cross-section at true scale
+    s_c = min((width / 2 - 2 * margin) / ext[1], (panel_height * 1.5 - 2 * margin) / ext[2])
+    ch = int(panel_height * 1.5)
+    u = (q[:, 1] - mid[1]) * s_c + width / 2
+    v = -(q[:, 2] - mid[2]) * s_c + ch / 2
+    panel = Image.fromarray(_splat(u, v, q[:, 0], colours, (width, ch), point_px))
+    d = ImageDraw.Draw(panel)
+    d.text((8, 6), "cross-section (along a1), true scale", fill=(200, 200, 200))
+    d.line([(margin, ch - 12), (margin + 10 * s_c, ch - 12)], fill=(255, 255, 255), width=3)
+    d.text((margin, ch - 26), "10 mm", fill=(255, 255, 255))
+    panels.append(panel)
+    out = Image.new("RGB", (width, sum(p.size[1] for p in panels) + 2 * (len(panels) - 1)), (60, 60, 60))
+    y = 0
+    for p in panels:
+        out.paste(p, (0, y))
+        y += p.size[1] + 2
+    if title:
+        ImageDraw.Draw(out).text((width - 8 - 7 * len(title), 6), title, fill=(255, 255, 255))
+    return out
+
+
+def save_png(image: Image.Image, path: str | os.PathLike, max_colours: int | None = None) -> None:
+    """Write a picture atomically: PNG (``max_colours``: adaptive palette, to keep it small), or
+    JPEG (quality 85) when ``path`` ends in ``.jpg``/``.jpeg`` (for sheets of ultrasound frames,
+    whose speckle PNG compresses badly)."""
+    buf = io.BytesIO()
+    if str(path).lower().endswith((".jpg", ".jpeg")):
+        image.convert("RGB").save(buf, format="JPEG", quality=85, optimize=True)
+    else:
+        if max_colours:
+            image = image.convert("RGB").convert("P", palette=Image.Palette.ADAPTIVE, colors=max_colours)
+        image.save(buf, format="PNG", optimize=True)
+    atomic_write_bytes(path, buf.getvalue())

@@ -1,0 +1,126 @@
+"""Sweep → bone point cloud in one call: read, segment, compound, clean.
+
+:func:`sweep_to_points` returns the points with their provenance (frame index, probe position,
+beam direction); :func:`points_from_sweep` returns only the ``(N, 3)`` mm array, for
+``reconstruct SWEEP``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..errors import InputError
+from ..progress import QUIET, Progress
+from .compound import CompoundedPoints, compound
+from .learned import LearnedSegmenter, is_model_path
+from .model import Sweep
+from .outliers import statistical_outlier_mask
+from .readers import read_sweep
+from .segment import BoneDetector
+
+SEGMENT_CHOICES = ("auto", "masks", "classical")
+
+
+def segment_sweep(sweep: Sweep, segment: str = "auto", detector: Mapping[str, Any] | BoneDetector | None = None,
+                  model_options: Mapping[str, Any] | None = None,
+                  progress: Progress = QUIET) -> tuple[np.ndarray, str]:
+    """Bone masks ``(F, H, W)`` for a sweep and the name of the method used.
+
+    ``segment``: ``auto`` (the sweep's masks if it has them, else the classical detector),
+    ``masks`` (the sweep's masks; error if none), ``classical`` (:class:`BoneDetector` with the
+    ``detector`` options), or the path of a TorchScript/ONNX model file (:class:`LearnedSegmenter`
+    with ``model_options``).
+    """
+    src = sweep.source or "sweep"
+    if segment == "auto":
+        segment = "masks" if sweep.masks is not None else "classical"
+    if segment == "masks":
+        if sweep.masks is None:
+            raise InputError(f"{src}: the sweep has no bone masks (give masks, or segment with "
+                             f"'classical' or a model file)")
+        return sweep.masks, "masks"
+    if segment != "classical" and not (is_model_path(segment) or Path(segment).is_file()):
+        raise InputError(f"unknown segmentation {segment!r}: use auto, masks, classical or the path "
+                         f"of a TorchScript/ONNX model file")
+    if sweep.images is None:
+        raise InputError(f"{src}: the sweep has no B-mode frames to segment")
+    if segment == "classical":
+        det = detector if isinstance(detector, BoneDetector) else BoneDetector.from_options(dict(detector or {}))
+        with progress.stage("segment", sweep.n_frames) as advance:
+            return det.segment_stack(sweep.images, sweep.spacing_mm, advance), "classical"
+    model = LearnedSegmenter(segment, **dict(model_options or {}))
+    with progress.stage("segment", sweep.n_frames) as advance:
+        return model.segment_stack(sweep.images, sweep.spacing_mm, advance), f"model:{segment}"
+
+
+def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
+                    masks: str | os.PathLike | np.ndarray | None = None,
+                    detector: Mapping[str, Any] | BoneDetector | None = None,
+                    model_options: Mapping[str, Any] | None = None,
+                    top_only: bool = True, remove_outliers: bool = True, outlier_k: int = 16,
+                    outlier_std: float = 2.0, frame_step: int = 1,
+                    progress: Progress = QUIET, **read_options: Any) -> CompoundedPoints:
+    """Tracked sweep → bone points in world mm, with per-point provenance.
+
+    Args:
+        sweep: a :class:`Sweep`, or the path of a sweep folder / sequence file (read with
+            :func:`~ultraboneudf.sweep.readers.read_sweep` and ``read_options``).
+        segment: ``auto`` | ``masks`` | ``classical`` | model file path (see :func:`segment_sweep`).
+        masks: bone masks for the frames (array ``(F, H, W)``, folder of PNGs, ``.npy``/``.npz``),
+            overriding the sweep's own.
+        detector: :class:`BoneDetector` or its options (``{field: value}``, lengths in mm).
+        model_options: options of :class:`LearnedSegmenter` (``threshold``, ``input_size``, …).
+        top_only: keep only the shallowest mask pixel of each scan line (the bone surface).
+        remove_outliers: statistical outlier removal (``outlier_k`` neighbours, ``outlier_std``).
+        frame_step: use every ``frame_step``-th frame.
+        progress: progress reporter.
+
+    Raises:
+        InputError: naming the file, for unreadable sweeps, bad masks, or no bone found at all.
+    """
+    if not isinstance(sweep, Sweep):
+        if isinstance(masks, (str, os.PathLike)):
+            read_options["masks"] = masks
+            masks = None
+        with progress.stage("read sweep", None):
+            sweep = read_sweep(sweep, **read_options)
+    elif read_options:
+        raise TypeError(f"read options {sorted(read_options)} need a path, not a Sweep")
+    if isinstance(masks, (str, os.PathLike)):
+        from .readers.images import load_mask_stack  # noqa: PLC0415
+
+        sweep = sweep.with_masks(load_mask_stack(masks, sweep.n_frames, sweep.image_size,
+                                                 [Path(n).stem for n in sweep.frame_names]))
+    elif masks is not None:
+        arr = np.asarray(masks)
+        if arr.shape != (sweep.n_frames, sweep.height, sweep.width):
+            raise InputError(f"masks have shape {arr.shape}, expected "
+                             f"({sweep.n_frames}, {sweep.height}, {sweep.width})")
+        sweep = sweep.with_masks(arr)
+    if frame_step > 1:
+        sweep = sweep.subset(np.arange(0, sweep.n_frames, int(frame_step)))
+    bone, method = segment_sweep(sweep, segment, detector, model_options, progress)
+    with progress.stage("compound", sweep.n_frames) as advance:
+        cp = compound(sweep, bone, top_only=top_only, advance=advance)
+    if len(cp) == 0:
+        raise InputError(f"{sweep.source or 'sweep'}: no bone found in any of the {sweep.n_frames} "
+                         f"frames (segmentation: {method})")
+    if remove_outliers and len(cp) > outlier_k + 1:
+        cp = cp.subset(statistical_outlier_mask(cp.points, outlier_k, outlier_std))
+    if frame_step > 1:  # report frame indices of the original sweep
+        cp.frame_index = cp.frame_index * int(frame_step)
+    progress.log(f"{len(cp)} bone points from {sweep.n_frames} frames ({method})")
+    return cp
+
+
+def points_from_sweep(path: str | os.PathLike, progress: Progress = QUIET, **options: Any) -> np.ndarray:
+    """``(N, 3)`` float64 bone points in mm from a sweep folder or sequence file.
+
+    ``options`` are those of :func:`sweep_to_points` (and of the layout's reader). Raises
+    :class:`InputError` naming the file for any problem with the sweep.
+    """
+    return sweep_to_points(path, progress=progress, **options).points

@@ -1,0 +1,344 @@
+"""PLUS sequence metafiles: MetaIO ``.mha`` (one file) and ``.mhd`` + ``.raw``/``.zraw``.
+
+A small header parser, no ITK. The header is ``Key = Value`` lines up to ``ElementDataFile``;
+per frame ``i`` PLUS writes ``Seq_Frame%04d_<From>To<To>Transform`` (16 numbers, row-major),
+optionally ``…TransformStatus`` (``OK``/``INVALID``; INVALID frames are skipped, a missing status
+means OK), ``…Timestamp``, ``…FrameNumber``, ``…ImageStatus``.
+
+Geometry follows PLUS: the image frame is in *pixels* with the centre of the first pixel at the
+origin (``pixel_offset = 0``); ``ImageToReference`` (= ``ImageToProbe`` calibration × tracking)
+carries the mm-per-pixel scaling; ``ElementSpacing`` is not used for geometry. Frames stored in an
+orientation other than ``MF`` are flipped to ``MF`` on reading (PLUS calibrations are for ``MF``).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import warnings
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import InputError
+from ...io import atomic_write_bytes
+from ..model import Sweep, SweepWarning
+from ..transforms import format_matrix, parse_matrix, split_scaled_transform
+
+SUFFIXES = (".mha", ".mhd")
+MET_TYPES = {
+    "MET_UCHAR": np.uint8, "MET_CHAR": np.int8, "MET_USHORT": np.uint16, "MET_SHORT": np.int16,
+    "MET_UINT": np.uint32, "MET_INT": np.int32, "MET_ULONG_LONG": np.uint64,
+    "MET_LONG_LONG": np.int64, "MET_FLOAT": np.float32, "MET_DOUBLE": np.float64,
+}
+_FRAME_KEY = re.compile(r"^Seq_Frame(\d+)_(.+)$")
+_TRANSFORM = re.compile(r"^(.+)Transform$")
+MAX_HEADER_BYTES = 64 << 20
+
+
+def detect(path: Path) -> bool:
+    """A ``.mha`` or ``.mhd`` file (``.seq.mha`` included)."""
+    return path.is_file() and path.suffix.lower() in SUFFIXES
+
+
+def read_header(path: Path) -> tuple[dict[str, str], int]:
+    """Parse the MetaIO text header: ``(fields, byte offset of the pixel data)``.
+
+    Duplicated keys are tolerated with a warning (the last value wins). Raises
+    :class:`InputError` naming the file when no ``ElementDataFile`` line ends the header.
+    """
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read(MAX_HEADER_BYTES)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    fields: dict[str, str] = {}
+    pos = 0
+    dup: list[str] = []
+    while pos < len(raw):
+        end = raw.find(b"\n", pos)
+        end = len(raw) if end < 0 else end
+        line = raw[pos:end].decode("latin-1").strip()
+        pos = end + 1
+        if not line:
+            continue
+        if "=" not in line:
+            raise InputError(f"{path}: not a MetaIO header (line {line[:60]!r} has no '=')")
+        key, value = (part.strip() for part in line.split("=", 1))
+        if key in fields:
+            dup.append(key)
+        fields[key] = value
+        if key == "ElementDataFile":
+            if dup:
+                warnings.warn(f"{path}: duplicated header key(s) {', '.join(sorted(set(dup))[:5])}; "
+                              f"the last value is used", SweepWarning, stacklevel=3)
+            return fields, pos
+    raise InputError(f"{path}: not a MetaIO file (no ElementDataFile line ends the header)")
+
+
+def _bool(value: str | None) -> bool:
+    return str(value).strip().lower() in ("true", "1", "yes")
+
+
+def _read_pixels(path: Path, fields: dict[str, str], data_offset: int,
+                 shape: tuple[int, int, int], channels: int) -> np.ndarray:
+    etype = fields.get("ElementType", "")
+    if etype not in MET_TYPES:
+        raise InputError(f"{path}: unsupported ElementType {etype!r}")
+    dtype = np.dtype(MET_TYPES[etype])
+    if _bool(fields.get("BinaryDataByteOrderMSB") or fields.get("ElementByteOrderMSB")):
+        dtype = dtype.newbyteorder(">")
+    target = fields["ElementDataFile"]
+    if target == "LOCAL":
+        data_path, offset = path, data_offset
+    elif target.upper().startswith("LIST") or "%" in target:
+        raise InputError(f"{path}: ElementDataFile = {target} (file lists) is not supported")
+    else:
+        data_path, offset = path.parent / target, int(fields.get("HeaderSize", 0) or 0)
+    try:
+        with open(data_path, "rb") as fh:
+            fh.seek(offset)
+            blob = fh.read()
+    except OSError as exc:
+        raise InputError(f"{data_path}: cannot read the pixel data ({exc.strerror})") from None
+    if _bool(fields.get("CompressedData")):
+        try:
+            blob = zlib.decompress(blob)
+        except zlib.error as exc:
+            raise InputError(f"{data_path}: corrupt compressed pixel data ({exc})") from None
+    expected = int(np.prod(shape)) * channels * dtype.itemsize
+    if len(blob) < expected:
+        raise InputError(f"{data_path}: pixel data has {len(blob)} bytes, {expected} expected for "
+                         f"{shape[0]} frames of {shape[2]}x{shape[1]} px (truncated file?)")
+    arr = np.frombuffer(blob[:expected], dtype=dtype).reshape(*shape, channels)
+    arr = arr.astype(dtype.newbyteorder("="), copy=False)
+    if channels == 1:
+        return arr[..., 0]
+    grey = arr[..., :3].astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+    return np.clip(np.rint(grey), 0, 255).astype(np.uint8) if arr.dtype == np.uint8 else grey
+
+
+def frame_fields(fields: dict[str, str]) -> dict[int, dict[str, str]]:
+    """``{frame number: {field name without the Seq_FrameNNNN_ prefix: value}}``."""
+    out: dict[int, dict[str, str]] = {}
+    for key, value in fields.items():
+        m = _FRAME_KEY.match(key)
+        if m:
+            out.setdefault(int(m.group(1)), {})[m.group(2)] = value
+    return out
+
+
+def choose_transform(names: set[str], path: Path, wanted: str | None) -> str:
+    """Pick the per-frame image transform: ``wanted``, else ``ImageToReference``, else the only
+    ``ImageTo*``; errors list what the file holds."""
+    if wanted:
+        wanted = wanted[:-len("Transform")] if wanted.endswith("Transform") else wanted
+        if wanted not in names:
+            raise InputError(f"{path}: no per-frame {wanted}Transform (found: "
+                             f"{', '.join(sorted(names)) or 'none'})")
+        return wanted
+    if "ImageToReference" in names:
+        return "ImageToReference"
+    image_to = sorted(n for n in names if n.startswith("ImageTo"))
+    if len(image_to) == 1:
+        return image_to[0]
+    if image_to:
+        warnings.warn(f"{path}: several image transforms ({', '.join(image_to)}); using {image_to[0]}",
+                      SweepWarning, stacklevel=3)
+        return image_to[0]
+    raise InputError(f"{path}: no per-frame ImageTo…Transform, so the frames have no pose in mm "
+                     f"(found: {', '.join(sorted(names)) or 'no transforms'}); pass transform= and "
+                     f"image_to_probe= for a ProbeTo… transform plus a calibration")
+
+
+def read_frame_transforms(path: Path, fields: dict[str, str], n_frames: int,
+                          transform: str | None = None,
+                          image_to_probe: np.ndarray | None = None
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str], str]:
+    """Per-frame pixel → world matrices from ``Seq_Frame…`` fields.
+
+    Returns ``(matrices (K,4,4), kept frame indices (K,), timestamps (K,), names, transform)``;
+    frames with ``TransformStatus = INVALID`` are dropped (with a warning). Raises
+    :class:`InputError` when the number of transforms differs from ``n_frames``.
+    """
+    per_frame = frame_fields(fields)
+    names = {m.group(1) for f in per_frame.values() for k in f
+             if (m := _TRANSFORM.match(k)) is not None}
+    if image_to_probe is not None and transform is None:
+        probe = sorted(n for n in names if n.startswith("ProbeTo"))
+        if not probe:
+            raise InputError(f"{path}: no per-frame ProbeTo…Transform to combine with the calibration")
+        transform = probe[0]
+    name = choose_transform(names, path, transform)
+    key = f"{name}Transform"
+    have = sorted(i for i, f in per_frame.items() if key in f)
+    if len(have) != n_frames or (have and (have[0] != 0 or have[-1] != n_frames - 1)):
+        absent = sorted(set(range(n_frames)) - set(have))
+        extra = sorted(set(have) - set(range(n_frames)))
+        detail = (f"no transform for frame {absent[0]}" if absent
+                  else f"transforms for frames beyond the last image (frame {extra[0]})")
+        raise InputError(f"{path}: {n_frames} frames (DimSize) but {len(have)} {key} fields ({detail})")
+    mats, kept, stamps, labels = [], [], [], []
+    invalid = []
+    for i in range(n_frames):
+        f = per_frame[i]
+        if f.get(f"{key}Status", "OK").strip().upper() not in ("OK", "VALID"):
+            invalid.append(i)
+            continue
+        m = parse_matrix(f[key], f"{path}: Seq_Frame{i:04d}_{key}")
+        if image_to_probe is not None:
+            m = m @ image_to_probe
+        mats.append(m)
+        kept.append(i)
+        try:
+            stamps.append(float(f.get("Timestamp", i)))
+        except ValueError:
+            stamps.append(float(i))
+        labels.append(f"Seq_Frame{i:04d}")
+    if invalid:
+        warnings.warn(f"{path}: skipped {len(invalid)} frame(s) with {key}Status INVALID "
+                      f"(first: frame {invalid[0]})", SweepWarning, stacklevel=3)
+    if not mats:
+        raise InputError(f"{path}: every frame's {key} is INVALID")
+    return np.stack(mats), np.asarray(kept), np.asarray(stamps), labels, name
+
+
+def _orient_to_mf(frames: np.ndarray, orientation: str, path: Path) -> np.ndarray:
+    o = orientation.strip().upper()
+    if o in ("", "MF"):
+        return frames
+    if o not in ("UF", "MN", "UN"):
+        warnings.warn(f"{path}: UltrasoundImageOrientation {orientation!r} not understood; frames "
+                      f"used as stored", SweepWarning, stacklevel=3)
+        return frames
+    if o[0] == "U":
+        frames = frames[:, :, ::-1]
+    if o[1] == "N":
+        frames = frames[:, ::-1, :]
+    return np.ascontiguousarray(frames)
+
+
+def read(path: str | os.PathLike, masks: str | os.PathLike | None = None,
+         transform: str | None = None, image_to_probe: np.ndarray | None = None,
+         as_masks: bool = False) -> Sweep:
+    """Read a PLUS sequence metafile into a :class:`Sweep`.
+
+    Args:
+        path: ``.mha`` / ``.mhd`` (``.seq.mha`` etc.).
+        masks: optional mask stack for the same frames (folder of PNGs, ``.npy``, ``.npz``).
+        transform: per-frame transform name (``ImageToReference`` by default).
+        image_to_probe: 4×4 calibration (pixels → probe, with scaling) when ``transform`` is a
+            ``ProbeTo…`` transform.
+        as_masks: the pixel data are bone masks (non-zero = bone), not B-mode frames.
+    """
+    from .images import load_mask_stack
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    fields, data_offset = read_header(path)
+    try:
+        ndims = int(fields.get("NDims", "3"))
+        dims = [int(v) for v in fields.get("DimSize", "").split()]
+        channels = int(fields.get("ElementNumberOfChannels", "1"))
+    except ValueError:
+        raise InputError(f"{path}: malformed NDims/DimSize/ElementNumberOfChannels") from None
+    if ndims not in (2, 3) or len(dims) != ndims or min(dims, default=0) < 0:
+        raise InputError(f"{path}: expected NDims 3 (width height frames), got NDims {ndims}, "
+                         f"DimSize {fields.get('DimSize')!r}")
+    w, h = dims[0], dims[1]
+    n = dims[2] if ndims == 3 else 1
+    if w == 0 or h == 0 or n == 0:
+        raise InputError(f"{path}: the sequence holds no image data (DimSize {fields.get('DimSize')})")
+    mats, kept, stamps, labels, name = read_frame_transforms(path, fields, n, transform, image_to_probe)
+    pixels = _read_pixels(path, fields, data_offset, (n, h, w), channels)
+    orientation = fields.get("UltrasoundImageOrientation")
+    if orientation is None:
+        warnings.warn(f"{path}: no UltrasoundImageOrientation; assuming MF", SweepWarning, stacklevel=2)
+        orientation = "MF"
+    pixels = _orient_to_mf(pixels, orientation, path)[kept]
+    rigid, spacing = [], []
+    for m, label in zip(mats, labels):
+        r, s = split_scaled_transform(m, f"{path}: {label}_{name}Transform")
+        rigid.append(r)
+        spacing.append(s)
+    spacing_arr = np.asarray(spacing)
+    if np.allclose(spacing_arr, 1.0, atol=1e-9) and "ElementSpacing" in fields:
+        es = fields["ElementSpacing"].split()[:2]
+        if es and any(abs(float(v) - 1.0) > 1e-9 for v in es if _is_float(v)):
+            warnings.warn(f"{path}: the {name} transforms carry no scaling (1 mm/px); ElementSpacing "
+                          f"{' '.join(es)} is ignored, as PLUS does", SweepWarning, stacklevel=2)
+    images, mask_arr = (None, pixels != 0) if as_masks else (pixels, None)
+    sweep = Sweep(image_to_world=np.stack(rigid), spacing_mm=spacing_arr, image_size=(w, h),
+                  images=images, masks=mask_arr, timestamps=stamps, frame_names=labels,
+                  pixel_offset=0.0, orientation="MF", source=str(path),
+                  meta={"layout": "metaio", "transform": name, "file_orientation": orientation,
+                        "frame_numbers": kept.tolist()})
+    if masks is not None:
+        sweep = sweep.with_masks(load_mask_stack(masks, sweep.n_frames, sweep.image_size))
+    return sweep
+
+
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
+def write(sweep: Sweep, path: str | os.PathLike, compress: bool = False,
+          transform: str = "ImageToReference", data: str = "images") -> Path:
+    """Write ``sweep`` as a PLUS sequence metafile (``.mha``: one file; ``.mhd``: header plus
+    ``.raw``/``.zraw``), atomically.
+
+    The per-frame ``<transform>Transform`` is the sweep's pixel → world matrix with the PLUS pixel
+    convention (centre of the first pixel at the origin), so reading back reproduces the geometry.
+    ``data`` selects the pixel data: ``images`` or ``masks`` (written as 0/255 ``MET_UCHAR``).
+    """
+    path = Path(path)
+    if path.suffix.lower() not in SUFFIXES:
+        raise ValueError(f"{path}: use a .mha or .mhd suffix")
+    pixels = sweep.images if data == "images" else (
+        None if sweep.masks is None else sweep.masks.astype(np.uint8) * 255)
+    if pixels is None:
+        raise ValueError(f"the sweep has no {data} to write")
+    rev = {np.dtype(v): k for k, v in MET_TYPES.items()}
+    dtype = pixels.dtype.newbyteorder("<") if pixels.dtype.itemsize > 1 else pixels.dtype
+    etype = rev.get(np.dtype(pixels.dtype.newbyteorder("=")))
+    if etype is None:
+        raise ValueError(f"cannot write pixels of type {pixels.dtype}")
+    blob = np.ascontiguousarray(pixels, dtype=dtype).tobytes()
+    if compress:
+        blob = zlib.compress(blob, 6)
+    n = sweep.n_frames
+    mats = sweep.pixel_to_world()  # PLUS: pixel index (c, r) is the pixel centre, as here
+    suffix = ".zraw" if compress else ".raw"
+    data_name = "LOCAL" if path.suffix.lower() == ".mha" else path.with_suffix(suffix).name
+    lines = [
+        "ObjectType = Image", "NDims = 3", "AnatomicalOrientation = RAI", "BinaryData = True",
+        "BinaryDataByteOrderMSB = False", "CenterOfRotation = 0 0 0",
+        f"CompressedData = {'True' if compress else 'False'}",
+    ]
+    if compress:
+        lines.append(f"CompressedDataSize = {len(blob)}")
+    lines += [
+        f"DimSize = {sweep.width} {sweep.height} {n}", "ElementNumberOfChannels = 1",
+        "ElementSpacing = 1 1 1", "Offset = 0 0 0", "TransformMatrix = 1 0 0 0 1 0 0 0 1",
+        "Kinds = domain domain list", "UltrasoundImageOrientation = MF",
+        "UltrasoundImageType = BRIGHTNESS",
+    ]
+    for i in range(n):
+        p = f"Seq_Frame{i:04d}_"
+        lines += [f"{p}FrameNumber = {i}", f"{p}{transform}Transform = {format_matrix(mats[i])}",
+                  f"{p}{transform}TransformStatus = OK",
+                  f"{p}Timestamp = {repr(float(sweep.timestamps[i]))}", f"{p}ImageStatus = OK"]
+    lines += [f"ElementType = {etype}", f"ElementDataFile = {data_name}"]
+    header = ("\n".join(lines) + "\n").encode("latin-1")
+    if data_name == "LOCAL":
+        atomic_write_bytes(path, header + blob)
+    else:
+        atomic_write_bytes(path.with_suffix(suffix), blob)
+        atomic_write_bytes(path, header)
+    return path

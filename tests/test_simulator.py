@@ -1,0 +1,178 @@
+"""The sweep simulator on a capsule (a bone-like closed surface with a closed-form distance)."""
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from ultraboneudf.cli import main
+from ultraboneudf.sweep import BoneDetector, compound, read_sweep, sweep_to_points
+from ultraboneudf.synth.simulator import SimulationConfig, config_with_noise, simulate_sweep
+from ultraboneudf.synth.truth import mask_precision_recall, point_to_mesh_distance, surface_coverage
+
+RADIUS, HALF = 8.0, 20.0  # capsule: segment z ∈ [−20, 20], radius 8 mm
+
+
+def capsule_distance(p):
+    z = np.clip(p[:, 2], -HALF, HALF)
+    axis = np.column_stack([np.zeros_like(z), np.zeros_like(z), z])
+    return np.abs(np.linalg.norm(p - axis, axis=1) - RADIUS)
+
+
+def small(noise="default", **kw):
+    base = dict(width_px=128, height_px=160, spacing_mm=0.3, frame_spacing_mm=1.5, seed=3)
+    base.update(kw)
+    return config_with_noise(noise, **base)
+
+
+@pytest.fixture(scope="module")
+def capsule():
+    return trimesh.creation.capsule(height=2 * HALF, radius=RADIUS, count=[48, 48])
+
+
+@pytest.fixture(scope="module")
+def sim(capsule):
+    return simulate_sweep(capsule, small())
+
+
+def test_shapes_and_path(sim):
+    s = sim.sweep
+    assert s.images.shape == (s.n_frames, 160, 128) and s.images.dtype == np.uint8
+    assert sim.true_masks.shape == sim.pred_masks.shape == s.images.shape
+    assert 25 <= s.n_frames <= 40
+    normals = sim.true_image_to_world[:, :3, 2]
+    assert np.abs(normals[:, 2]).min() > np.cos(np.deg2rad(15))   # frames ⟂ the long axis, ± tilt
+    assert np.all(np.diff(sim.true_image_to_world[:, 2, 3] * np.sign(normals[0, 2])) > 0)  # forward
+
+
+def test_true_masks_lie_on_the_surface(sim):
+    cp = compound(sim.true_sweep())
+    assert len(cp) > 1000
+    d = capsule_distance(cp.points)
+    assert d.max() <= 0.5 * sim.config.spacing_mm + 0.05   # floor(depth / s): half a pixel
+    # one pixel per scan line, and only where the beam meets the bone
+    assert sim.true_masks.sum(axis=1).max() == 1
+
+
+def test_visible_truth(sim, capsule):
+    vis = sim.visible_mesh
+    assert 0 < vis.area < 0.6 * capsule.area
+    up = -sim.true_image_to_world[:, :3, 1].mean(axis=0)
+    facing = vis.face_normals @ (up / np.linalg.norm(up))
+    assert np.average(facing > np.cos(np.deg2rad(80)), weights=vis.area_faces) > 0.95
+    cp = compound(sim.true_sweep())
+    assert surface_coverage(vis, cp.points, radius_mm=1.0) > 0.9
+
+
+def test_tracking_noise_is_small_and_present(sim):
+    true, rec = sim.true_image_to_world, sim.sweep.image_to_world
+    shift = np.linalg.norm(true[:, :3, 3] - rec[:, :3, 3], axis=1)
+    assert 0 < np.median(shift) < 1.5
+    cos = (np.einsum("fij,fij->f", true[:, :3, :3], rec[:, :3, :3]) - 1) / 2
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 1.0
+
+
+def test_bmode_has_bright_echo_and_shadow(sim):
+    k = sim.sweep.n_frames // 2
+    img = sim.sweep.images[k].astype(float)
+    depth = sim.surface_depth_mm[k]
+    cols = np.flatnonzero(np.isfinite(depth))
+    rows = (depth[cols] / sim.config.spacing_mm).astype(int)
+    echo = img[rows, cols].mean()
+    below = np.mean([img[r + 10:r + 40, c].mean() for r, c in zip(rows, cols) if r + 40 < img.shape[0]])
+    tissue = img[20:120, np.flatnonzero(~np.isfinite(depth))].mean()
+    assert echo > 1.6 * tissue and below < 0.4 * tissue
+
+
+def test_predicted_masks_have_errors_but_follow_the_bone(sim):
+    p, r = mask_precision_recall(sim.pred_masks, sim.true_masks, sim.config.spacing_mm, 1.0)
+    assert 0.6 < r < 1.0 and p > 0.6
+    assert (sim.pred_masks & ~sim.true_masks).any()
+
+
+def test_no_noise_preset(capsule):
+    sim = simulate_sweep(capsule, small("none", n_frames=8))
+    np.testing.assert_array_equal(sim.sweep.image_to_world, sim.true_image_to_world)
+    from ultraboneudf.sweep import top_boundary
+
+    top = np.stack([top_boundary(m) for m in sim.pred_masks])
+    np.testing.assert_array_equal(top, sim.true_masks)
+
+
+def test_deterministic(capsule):
+    a = simulate_sweep(capsule, small(n_frames=4))
+    b = simulate_sweep(capsule, small(n_frames=4))
+    np.testing.assert_array_equal(a.sweep.images, b.sweep.images)
+    np.testing.assert_array_equal(a.sweep.image_to_world, b.sweep.image_to_world)
+    c = simulate_sweep(capsule, small(n_frames=4, seed=4))
+    assert not np.array_equal(a.sweep.images, c.sweep.images)
+
+
+def test_classical_detector_on_simulated_frames(sim):
+    pred = BoneDetector().segment_stack(sim.sweep.images, sim.sweep.spacing_mm)
+    p, r = mask_precision_recall(pred, sim.true_masks, sim.config.spacing_mm, 0.5)
+    assert p > 0.9 and r > 0.85
+
+
+def test_pipeline_accuracy_on_simulated_sweep(sim, capsule):
+    cp = sweep_to_points(sim.sweep, segment="classical")
+    d = capsule_distance(cp.points)
+    assert np.median(d) < 0.5
+    np.testing.assert_allclose(point_to_mesh_distance(cp.points[:500], capsule),
+                               d[:500], atol=0.05)   # the mesh is a polygonal capsule
+    assert surface_coverage(sim.visible_mesh, cp.points, 1.0) > 0.8
+
+
+def test_write_and_read_back(sim, tmp_path):
+    out = sim.write(tmp_path / "sim")
+    for name in ("poses.csv", "calibration.json", "gt_visible.ply", "gt_closed.ply",
+                 "simulation.json", "README.md", "truth/poses.csv"):
+        assert (out / name).is_file(), name
+    r = read_sweep(out)
+    np.testing.assert_allclose(r.pixel_to_world(), sim.sweep.pixel_to_world(), atol=1e-9)
+    np.testing.assert_array_equal(r.images, sim.sweep.images)
+    np.testing.assert_array_equal(r.masks, sim.pred_masks)
+    np.testing.assert_array_equal(read_sweep(out, mask_dir="masks_true").masks, sim.true_masks)
+    t = read_sweep(out / "truth", masks=out / "masks_true", load_images=False)
+    np.testing.assert_allclose(t.pixel_to_world(), sim.true_sweep().pixel_to_world(), atol=1e-9)
+    vis = trimesh.load(out / "gt_visible.ply")
+    assert len(vis.faces) == len(sim.visible_mesh.faces)
+    meta = json.loads((out / "simulation.json").read_text())
+    assert meta["config"]["seed"] == 3 and meta["info"]["frames"] == sim.sweep.n_frames
+
+
+def test_cli_simulate_then_sweep2points(capsule, tmp_path, capsys):
+    mesh_path = tmp_path / "capsule.ply"
+    capsule.export(mesh_path)
+    out = tmp_path / "sw"
+    args = ["simulate", str(mesh_path), "-o", str(out), "--frames", "6", "--width-px", "96",
+            "--height-px", "120", "--spacing-mm", "0.3", "--seed", "1", "--quiet"]
+    assert main(args) == 0
+    assert "6 frames" in capsys.readouterr().out
+    assert main(args) == 2                       # refuses a non-empty folder
+    assert "not empty" in capsys.readouterr().err
+    pts = tmp_path / "p.xyz"
+    assert main(["sweep2points", str(out), "-o", str(pts), "--segment", "classical", "--quiet"]) == 0
+    assert np.median(capsule_distance(np.loadtxt(pts)[:, :3])) < 0.5
+
+
+def test_cli_simulate_rejects_open_mesh(tmp_path, capsys):
+    open_mesh = trimesh.creation.box()
+    open_mesh.update_faces(np.arange(len(open_mesh.faces)) > 0)
+    path = tmp_path / "open.ply"
+    open_mesh.export(path)
+    assert main(["simulate", str(path), "-o", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "open.ply" in err and "not closed" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_unknown_options_rejected():
+    from ultraboneudf.errors import InputError
+
+    with pytest.raises(InputError, match="unknown noise"):
+        config_with_noise("extreme")
+    with pytest.raises(InputError, match="unknown simulation option"):
+        config_with_noise("default", wobble=3)
+    assert SimulationConfig().tracking_noise_mm > 0
