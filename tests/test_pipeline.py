@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 import ultraboneudf
-from ultraboneudf.evaluation.metrics import evaluate
+from ultraboneudf.evaluation import evaluate
 
 # A quarter-cylinder patch (radius 20 mm, 40 mm long): open, curved, known exactly.
 RADIUS, LENGTH = 20.0, 40.0
@@ -56,8 +56,13 @@ def test_end_to_end_chamfer_bound(small_run):
 def test_sidecar_contents(small_run, tmp_path):
     rec = small_run
     sidecar = rec.sidecar()
-    for key in ("method", "preset", "config", "timings", "counts", "device", "seed", "version", "input"):
+    for key in ("method", "preset", "config", "timings", "counts", "device", "seed", "version", "input",
+                "mesh_quality"):
         assert key in sidecar
+    # the fast preset extracts in clean mode: one layer, no edge shared by more than two faces
+    quality = sidecar["mesh_quality"]
+    assert quality["nonmanifold_edges"] == 0 and quality["duplicate_faces"] == 0
+    assert quality["faces"] == len(rec.mesh.faces)
     assert set(sidecar["timings"]) >= {"preprocess_s", "train_s", "extract_s", "total_s"}
     counts = sidecar["counts"]
     assert counts["input_points"] == 4000 and counts["surface_points"] == 3000

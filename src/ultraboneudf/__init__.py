@@ -9,8 +9,9 @@
 from ._version import __version__
 from .config import Config, preset
 from .errors import InputError
+from .evaluation import EvalResult, evaluate
 from .io import load_mesh, load_points, save_mesh
 from .pipeline import Reconstruction, reconstruct
 
 __all__ = ["__version__", "Config", "preset", "InputError", "load_points", "load_mesh", "save_mesh",
-           "reconstruct", "Reconstruction"]
+           "reconstruct", "Reconstruction", "evaluate", "EvalResult"]

@@ -19,11 +19,12 @@ import trimesh
 from ._version import __version__
 from .config import Config, apply_overrides, preset as make_preset
 from .errors import InputError
+from .extraction import extract_mesh, mesh_quality
 from .geometry.normalize import Normalizer
 from .geometry.voxel import voxel_downsample
 from .io import save_json, save_mesh, validate_points
 from .methods import get_method
-from .progress import QUIET, Progress
+from .progress import Progress
 
 
 @dataclass
@@ -39,6 +40,7 @@ class Reconstruction:
     config: Config
     timings: dict[str, float]
     counts: dict[str, int]
+    quality: dict[str, float]
     device: str
     seed: int
     normalizer: Normalizer
@@ -54,6 +56,7 @@ class Reconstruction:
             "config": self.config.to_dict(),
             "timings": {k: round(v, 4) for k, v in self.timings.items()},
             "counts": self.counts,
+            "mesh_quality": self.quality,
             "device": self.device,
             "seed": self.seed,
             "version": self.version,
@@ -126,8 +129,6 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
     voxel_s = time.perf_counter() - t0
 
     fitted = fit(unit_points, cfg, dev, seed, progress)
-    from .extraction import extract_mesh  # TEMP lazy until extraction lands
-
     t1 = time.perf_counter()
     if fitted.mesh is not None:
         unit_mesh = fitted.mesh
@@ -149,6 +150,7 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
     counts = {"input_points": len(points), "voxelized_points": len(voxelised), **fitted.counts,
               "vertices": 0 if mesh is None else len(mesh.vertices),
               "faces": 0 if mesh is None else len(mesh.faces)}
+    quality = mesh_quality(mesh) if mesh is not None else {}
     return Reconstruction(mesh=mesh, method=method, preset=preset if config is None else "custom",
-                          config=cfg, timings=timings, counts=counts, device=str(dev), seed=seed,
+                          config=cfg, timings=timings, counts=counts, quality=quality, device=str(dev), seed=seed,
                           normalizer=normalizer, history=fitted.history)

@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
-from ..io import atomic_write_bytes, save_json, save_mesh
+from ..io import atomic_write_bytes, save_json, save_mesh, sha256_file
 from ..pipeline import reconstruct
 from ..progress import Progress
 from ..synth import bone_phantom
@@ -41,29 +39,31 @@ def run(args: argparse.Namespace) -> int:
                       assignments=args.assignments, progress=progress, source="demo phantom", **overrides)
     out.mkdir(parents=True, exist_ok=True)
     points_path = out / "demo_points.xyz"
-    atomic_write_bytes(points_path, "".join(f"{x:.4f} {y:.4f} {z:.4f}\n" for x, y, z in phantom.points).encode())
+    text = "".join(f"{x:.4f} {y:.4f} {z:.4f}\n" for x, y, z in phantom.points)
+    atomic_write_bytes(points_path, text.encode())
     save_mesh(phantom.truth, out / "demo_truth.ply")
     if rec.mesh is None:
         progress.log("demo: the reconstruction found no surface")
         return 1
-    rec.input = {"path": str(points_path.resolve()), "sha256": None, "note": "built-in demo phantom"}
+    rec.input = {"path": str(points_path.resolve()), "sha256": sha256_file(points_path),
+                 "note": "built-in demo phantom"}
     rec.save(out / "demo_mesh.ply")
     result = evaluate(rec.mesh, phantom.truth, samples=args.samples, seed=0)
     save_json(result.to_dict(), out / "demo_eval.json")
-    picture = _picture(rec.mesh, phantom.truth, phantom.points, out)
+    picture = _picture(rec.mesh, phantom.truth, result.cd_mm, out)
     t = rec.timings
     print(f"demo: Chamfer distance to the known truth {result.cd_mm:.3f} mm, HD95 {result.hd95_mm:.3f} mm "
           f"({rec.counts['faces']} faces, {t['total_s']:.1f} s on {rec.device}: preprocess "
           f"{t['preprocess_s']:.1f} s, train {t['train_s']:.1f} s, extract {t['extract_s']:.1f} s)")
-    print(f"demo: wrote {out}/demo_mesh.ply, demo_mesh.json, demo_eval.json"
-          + (f", {picture.name}" if picture else ""))
+    print(f"demo: wrote {out}/demo_mesh.ply, demo_mesh.json, demo_eval.json, {picture.name}")
     return 0
 
 
-def _picture(mesh, truth, points: np.ndarray, out: Path) -> Path | None:
-    """A distance-coloured render of the reconstruction against the truth."""
-    from ..evaluation.render import render_distance_png
+def _picture(mesh, truth, cd_mm: float, out: Path) -> Path:
+    """A distance-coloured render of the reconstruction against the truth (mean written = CD)."""
+    from ..evaluation.render import reference_points, render_distance_png
 
     path = out / "demo_mesh.png"
-    render_distance_png(mesh, truth, path, title="demo reconstruction (fast preset)")
+    render_distance_png(path, mesh, reference_points(truth, samples=500_000), mean_mm=cd_mm,
+                        title="demo: fast preset, colour = distance to the truth (mm)")
     return path

@@ -1,0 +1,93 @@
+"""``ultraboneudf render MESH [MESH …] -o OUT.png|OUT.html``: distance-coloured pictures."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..errors import InputError
+from ..io import load_mesh, load_points
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "render", help="distance-coloured picture (PNG) or interactive viewer (HTML) of a reconstruction",
+        description="Colour = distance (mm) from the reconstruction to the ground truth, clamped to "
+                    "0–VMAX, with a colour bar and the mean distance under it (as the paper's Figs. 7–9). "
+                    "One MESH and OUT.png: several views side by side; several MESHes: a grid of methods "
+                    "(columns) × views (rows). OUT.html: a self-contained WebGL viewer (one MESH) with "
+                    "toggles for the ground truth and the input points. Without --gt the mesh is grey.")
+    p.add_argument("meshes", nargs="+", metavar="MESH", help="reconstructed mesh(es) in mm")
+    p.add_argument("-o", "--out", required=True, metavar="OUT", help="OUT.png or OUT.html")
+    p.add_argument("--gt", metavar="GT", help="ground-truth mesh in mm (colours are distances to it)")
+    p.add_argument("--points", metavar="RAW", help="raw ultrasound cloud in mm: pseudo ground truth for the "
+                   "colours (as evaluate) and the input points of the viewer")
+    p.add_argument("--pseudo-gt-mm", type=float, default=None, metavar="T",
+                   help="pseudo-GT threshold τ in mm (default 2 when --points is given)")
+    p.add_argument("--labels", metavar="A,B,…", help="column titles of a grid (default: file names)")
+    p.add_argument("--views", default=None, metavar="V,…",
+                   help="views: front,right,back,left,top,bottom or AZ:EL in degrees "
+                        "(default front,right,back; grid: front,back)")
+    p.add_argument("--vmax", type=float, default=5.0, metavar="MM", help="top of the colour scale (default 5 mm)")
+    p.add_argument("--tile-height", type=int, default=None, metavar="PX",
+                   help="height of one view in pixels (default 480; grid 360)")
+    p.add_argument("--colour-samples", type=int, default=1_000_000, metavar="N",
+                   help="ground-truth points sampled to colour by (default 1,000,000)")
+    p.add_argument("--show-gt", action="store_true", help="grid: add a grey ground-truth column")
+    p.add_argument("--title", default=None, help="title (PNG of one mesh, HTML)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the ground-truth sampling (default 0)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..evaluation.cmd_support import load_optional_mesh
+    from ..evaluation.render import parse_view, reference_points, render_distance_png, render_grid_png
+    from ..evaluation.viewer import write_viewer
+
+    out = Path(args.out)
+    kind = out.suffix.lower()
+    if kind not in (".png", ".html", ".htm"):
+        raise InputError(f"{out}: unknown output type {out.suffix!r}; use .png or .html")
+    if kind != ".png" and len(args.meshes) > 1:
+        raise InputError(f"{out}: the HTML viewer shows one mesh; give one MESH or write a .png grid")
+    if args.vmax <= 0:
+        raise InputError(f"--vmax: must be > 0 mm, got {args.vmax}")
+    if args.pseudo_gt_mm is not None and not args.points:
+        raise InputError("--pseudo-gt-mm needs --points (the raw ultrasound cloud)")
+    if args.colour_samples < 1:
+        raise InputError(f"--colour-samples: must be at least 1, got {args.colour_samples}")
+    labels = [s.strip() for s in args.labels.split(",")] if args.labels else [Path(m).stem for m in args.meshes]
+    if len(labels) != len(args.meshes):
+        raise InputError(f"--labels: {len(labels)} labels for {len(args.meshes)} meshes")
+    views = [parse_view(v) for v in args.views.split(",")] if args.views else None
+    meshes = [load_optional_mesh(m) for m in args.meshes]
+    gt = load_mesh(args.gt) if args.gt else None
+    raw = load_points(args.points) if args.points else None
+    if raw is not None and gt is None and kind == ".png":
+        raise InputError("--points colours by the pseudo ground truth and needs --gt")
+    reference = None
+    if gt is not None:
+        reference = reference_points(gt, raw, args.pseudo_gt_mm, args.colour_samples, args.seed)
+    if kind == ".png" and len(meshes) == 1:
+        if meshes[0] is None:
+            raise InputError(f"{args.meshes[0]}: holds no triangles; nothing to render")
+        kwargs = {"title": args.title, "vmax": args.vmax}
+        if views:
+            kwargs["views"] = views
+        if args.tile_height:
+            kwargs["tile_height"] = args.tile_height
+        render_distance_png(out, meshes[0], reference, **kwargs)
+    elif kind == ".png":
+        kwargs = {"vmax": args.vmax, "ground_truth": gt if args.show_gt else None}
+        if views:
+            kwargs["views"] = views
+        if args.tile_height:
+            kwargs["tile_height"] = args.tile_height
+        render_grid_png(out, dict(zip(labels, meshes)), reference, **kwargs)
+    else:
+        if meshes[0] is None:
+            raise InputError(f"{args.meshes[0]}: holds no triangles; nothing to show")
+        write_viewer(out, meshes[0], reference=reference, ground_truth=gt, points=raw,
+                     title=args.title or labels[0], vmax=args.vmax)
+    print(out)
+    return 0

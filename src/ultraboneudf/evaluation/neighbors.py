@@ -1,0 +1,179 @@
+"""Exact Euclidean nearest-neighbour distances between large point sets (mm).
+
+Two back-ends give the same numbers (up to float32 rounding on the GPU, below 1e-4 mm for
+coordinates of a few hundred mm):
+
+* CPU: :class:`scipy.spatial.cKDTree`, queried with all cores (``workers=-1``). Both the tree's
+  points and the queries are first put in Morton (Z-curve) order, which keeps neighbouring queries
+  on neighbouring memory and roughly halves the query time for 5e6 random surface samples.
+* torch device (CUDA): a uniform-grid search. Reference points are bucketed into cubic cells of
+  edge ``h``; a query is compared with every point in the 3×3×3 cells around its own. A found
+  distance ``≤ h`` is exact, since every point outside that block is at least ``h`` away; queries
+  with no such neighbour are searched again with ``2h`` until all are resolved.
+
+Distances are Euclidean, not squared.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+_MORTON_BITS = 10
+_SPREAD = np.zeros(1 << _MORTON_BITS, dtype=np.uint64)
+for _i in range(1 << _MORTON_BITS):
+    _v = 0
+    for _b in range(_MORTON_BITS):
+        _v |= ((_i >> _b) & 1) << (3 * _b)
+    _SPREAD[_i] = _v
+del _i, _v, _b
+
+
+def morton_order(points: np.ndarray) -> np.ndarray:
+    """Permutation ``(N,)`` that sorts ``(N, 3)`` points along a 3-D Z-curve of 2^30 cells."""
+    lo = points.min(axis=0)
+    span = float((points.max(axis=0) - lo).max())
+    scale = ((1 << _MORTON_BITS) - 1) / span if span > 0 else 0.0
+    q = np.clip((points - lo) * scale, 0, (1 << _MORTON_BITS) - 1).astype(np.intp)
+    code = _SPREAD[q[:, 0]] | (_SPREAD[q[:, 1]] << np.uint64(1)) | (_SPREAD[q[:, 2]] << np.uint64(2))
+    return np.argsort(code, kind="stable")
+
+
+def spatially_sorted(points: np.ndarray) -> np.ndarray:
+    """A C-contiguous float64 copy of ``points`` in Morton order."""
+    points = np.asarray(points, dtype=np.float64)
+    return np.ascontiguousarray(points[morton_order(points)])
+
+
+def build_tree(points: np.ndarray) -> cKDTree:
+    """A KD-tree over ``(N, 3)`` points, tuned for surface samples.
+
+    Leaf size 32, sliding-midpoint splits (``balanced_tree=False``) and cells not shrunk to the
+    data (``compact_nodes=False``): on the 5e6 × 5e6 femur benchmark this builds in half the time
+    and queries 2.5× faster than the defaults (22 s against 61 s for both directions, 2 cores).
+    """
+    return cKDTree(np.asarray(points, dtype=np.float64), leafsize=32, compact_nodes=False,
+                   balanced_tree=False)
+
+
+def tree_distances(tree: cKDTree, query: np.ndarray, workers: int = -1,
+                   presorted: bool = False) -> np.ndarray:
+    """Distance (mm) from each query row to its nearest point in ``tree``; ``(M,)`` float64.
+
+    Queries are searched in Morton order (skipped when ``presorted``, e.g. the output of
+    :func:`spatially_sorted`) and the result returned in the caller's order.
+    """
+    query = np.asarray(query, dtype=np.float64)
+    if len(query) == 0:
+        return np.zeros(0, dtype=np.float64)
+    if presorted:
+        return tree.query(query, k=1, workers=workers)[0]
+    order = morton_order(query)
+    d_sorted, _ = tree.query(query[order], k=1, workers=workers)
+    out = np.empty(len(query), dtype=np.float64)
+    out[order] = d_sorted
+    return out
+
+
+def nearest_distances(query: np.ndarray, reference: np.ndarray, workers: int = -1,
+                      device: str = "cpu") -> np.ndarray:
+    """For every row of ``query`` (M, 3), the distance (mm) to the nearest row of ``reference`` (N, 3).
+
+    ``device="cpu"`` uses the KD-tree; any other torch device (``"cuda"``, ``"cuda:1"``) the grid
+    search. Returns ``(M,)`` float64; raises ``ValueError`` if ``reference`` is empty.
+    """
+    reference = np.asarray(reference, dtype=np.float64)
+    if len(reference) == 0:
+        raise ValueError("nearest_distances: the reference set is empty")
+    if device == "cpu":
+        return tree_distances(build_tree(reference), query, workers=workers)
+    return grid_distances(query, reference, device=device)
+
+
+# --------------------------------------------------------------------------------------------
+# uniform-grid search in torch (for CUDA; runs on any torch device)
+
+
+def _np_cell_keys(cells: np.ndarray, dim: int) -> np.ndarray:
+    """Linear key of integer cell coordinates ``(M, 3)`` in a box of ``dim`` cells per axis."""
+    return (cells[:, 0] * dim + cells[:, 1]) * dim + cells[:, 2]
+
+
+def _grid_cell_size(ref, target_per_cell: float = 6.0) -> float:
+    """Cell edge (mm) that puts about ``target_per_cell`` reference points in an occupied cell."""
+    import torch
+
+    lo = ref.min(dim=0).values
+    extent = float((ref.max(dim=0).values - lo).max())
+    if extent <= 0:
+        return 1.0
+    c0 = extent / 256.0
+    occupied = int(torch.unique(_cell_keys(torch.floor((ref - lo) / c0).long(), 258)).numel())
+    return max(c0 * (target_per_cell * occupied / len(ref)) ** 0.5, extent * 1e-6)
+
+
+def _cell_keys(cells, dim: int):
+    """Linear key of integer cell coordinates ``(M, 3)`` in a box of ``dim`` cells per axis."""
+    return (cells[:, 0] * dim + cells[:, 1]) * dim + cells[:, 2]
+
+
+def grid_distances(query: np.ndarray, reference: np.ndarray, device: str = "cuda",
+                   chunk: int = 1 << 21, max_doublings: int = 2, workers: int = -1) -> np.ndarray:
+    """Exact nearest-neighbour distances by uniform-grid search on a torch ``device``; ``(M,)`` float64.
+
+    Coordinates are shifted to a common origin and searched in float32. Queries still unresolved
+    after ``max_doublings`` doublings of the cell (points far from every reference point, where a
+    grid degenerates into brute force) are answered by the CPU KD-tree.
+    """
+    import torch
+
+    dev = torch.device(device)
+    q_np = np.asarray(query, dtype=np.float64)
+    r_np = np.asarray(reference, dtype=np.float64)
+    if len(q_np) == 0:
+        return np.zeros(0, dtype=np.float64)
+    origin = np.minimum(q_np.min(axis=0), r_np.min(axis=0))
+    q = torch.as_tensor(q_np - origin, dtype=torch.float32, device=dev)
+    r = torch.as_tensor(r_np - origin, dtype=torch.float32, device=dev)
+    extent = float(max(q.max(), r.max())) + 1e-6
+    best = torch.full((len(q),), float("inf"), dtype=torch.float32, device=dev)
+    pending = torch.arange(len(q), device=dev)
+    cell = _grid_cell_size(r)
+    offsets = torch.tensor([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)],
+                           dtype=torch.long, device=dev)
+    for level in range(max_doublings + 1):
+        if len(pending) == 0:
+            break
+        dim = int(extent / cell) + 3  # cells per axis, with a margin of one on each side
+        keys, order = torch.sort(_cell_keys(torch.floor(r / cell).long() + 1, dim))
+        r_sorted = r[order]
+        uniq, counts = torch.unique_consecutive(keys, return_counts=True)
+        starts = torch.cumsum(counts, 0) - counts
+        q_cells = torch.floor(q[pending] / cell).long() + 1
+        q_order = torch.argsort(_cell_keys(q_cells, dim))  # neighbouring queries, coherent gathers
+        pending, q_cells = pending[q_order], q_cells[q_order]
+        found = torch.empty(len(pending), dtype=torch.float32, device=dev)
+        for a in range(0, len(pending), chunk):
+            b = min(len(pending), a + chunk)
+            qc, qp = q_cells[a:b], q[pending[a:b]]
+            local = torch.full((b - a,), float("inf"), dtype=torch.float32, device=dev)
+            for off in offsets:
+                nk = _cell_keys(qc + off, dim)
+                pos = torch.searchsorted(uniq, nk).clamp_(max=len(uniq) - 1)
+                cnt = torch.where(uniq[pos] == nk, counts[pos], torch.zeros_like(pos))
+                st = starts[pos]
+                for j in range(int(cnt.max())):
+                    valid = cnt > j
+                    d2 = ((qp - r_sorted[torch.where(valid, st + j, 0)]) ** 2).sum(dim=1)
+                    local = torch.minimum(local, d2.masked_fill_(~valid, float("inf")))
+            found[a:b] = local
+        # exact where the nearest point found lies within one cell (all others are ≥ one cell away)
+        done = found <= cell * cell
+        best[pending[done]] = found[done]
+        pending = pending[~done]
+        cell *= 2.0
+    out = torch.sqrt(best).double().cpu().numpy()
+    if len(pending):
+        rest = pending.cpu().numpy()
+        out[rest] = tree_distances(build_tree(r_np), q_np[rest], workers=workers)
+    return out

@@ -1,0 +1,108 @@
+"""``ultraboneudf evaluate``, ``render`` and ``stats`` end to end (small sample counts)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from ultraboneudf.cli import main
+from ultraboneudf.evaluation import JSON_KEYS, Record, write_results_csv
+
+
+@pytest.fixture()
+def files(tmp_path):
+    gt = trimesh.creation.icosphere(subdivisions=4, radius=10.0)
+    recon = trimesh.Trimesh(gt.vertices * 1.1, gt.faces, process=False)  # 1 mm larger
+    gt.export(tmp_path / "gt.ply")
+    recon.export(tmp_path / "recon.ply")
+    empty = trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=int))
+    (tmp_path / "empty.ply").write_bytes(trimesh.exchange.ply.export_ply(empty))
+    cap = gt.vertices[gt.vertices[:, 2] > 5.0]  # raw cloud: the top cap only
+    np.savetxt(tmp_path / "raw.xyz", cap)
+    return tmp_path
+
+
+def test_evaluate_json_has_exactly_the_design_keys(files, capsys):
+    out = files / "m.json"
+    rc = main(["evaluate", str(files / "recon.ply"), "--gt", str(files / "gt.ply"), "--samples", "20000",
+               "--json", str(out), "--quiet"])
+    assert rc == 0
+    data = json.loads(out.read_text())
+    assert list(data) == list(JSON_KEYS)
+    assert data["cd_mm"] == pytest.approx(1.0, abs=0.05) and data["samples"] == 20000
+    assert data["pseudo_gt_mm"] is None
+    assert "CD" in capsys.readouterr().out
+
+
+def test_evaluate_with_pseudo_ground_truth(files):
+    out = files / "m.json"
+    assert main(["evaluate", str(files / "recon.ply"), "--gt", str(files / "gt.ply"), "--points",
+                 str(files / "raw.xyz"), "--pseudo-gt-mm", "1", "--samples", "20000", "--json", str(out),
+                 "--quiet"]) == 0
+    data = json.loads(out.read_text())
+    assert data["pseudo_gt_mm"] == 1.0
+    # d_GR only covers the scanned cap; d_RG still sees the whole reconstruction
+    assert data["d_gr_mean_mm"] == pytest.approx(1.0, abs=0.1) and data["d_rg_mean_mm"] > 3.0
+
+
+def test_evaluate_empty_mesh_is_a_counted_failure(files, capsys):
+    out = files / "m.json"
+    assert main(["evaluate", str(files / "empty.ply"), "--gt", str(files / "gt.ply"), "--samples", "1000",
+                 "--json", str(out), "--quiet"]) == 0
+    data = json.loads(out.read_text())
+    assert list(data) == list(JSON_KEYS) and data["cd_mm"] is None and data["hd95_mm"] is None
+    assert "counted as a failure" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("args, message", [
+    (["missing.ply", "--gt", "gt.ply"], "missing.ply: no such file"),
+    (["recon.ply", "--gt", "empty.ply"], "empty.ply: holds no triangles"),
+    (["recon.ply", "--gt", "gt.ply", "--pseudo-gt-mm", "1"], "--pseudo-gt-mm needs --points"),
+    (["recon.ply", "--gt", "gt.ply", "--samples", "0"], "--samples"),
+])
+def test_evaluate_bad_input_exits_2_naming_the_problem(files, capsys, monkeypatch, args, message):
+    monkeypatch.chdir(files)
+    assert main(["evaluate", *args, "--json", "out.json"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not (files / "out.json").exists()
+
+
+def test_render_png_grid_and_html(files):
+    png = files / "r.png"
+    assert main(["render", str(files / "recon.ply"), "--gt", str(files / "gt.ply"), "-o", str(png),
+                 "--tile-height", "160", "--colour-samples", "20000"]) == 0
+    assert Image.open(png).size[1] == 160
+    grid = files / "g.png"
+    assert main(["render", str(files / "recon.ply"), str(files / "empty.ply"), "--gt", str(files / "gt.ply"),
+                 "-o", str(grid), "--labels", "a,b", "--views", "front,30:20", "--tile-height", "100",
+                 "--colour-samples", "20000", "--show-gt"]) == 0
+    assert Image.open(grid).size[1] == 2 * 100 + int(54 * 0.75)
+    page = files / "v.html"
+    assert main(["render", str(files / "recon.ply"), "--gt", str(files / "gt.ply"), "--points",
+                 str(files / "raw.xyz"), "-o", str(page), "--colour-samples", "20000"]) == 0
+    assert "ready webgl2" in page.read_text()  # the status script is in the page
+    assert main(["render", str(files / "recon.ply"), "-o", str(files / "x.jpg")]) == 2
+
+
+def test_stats_prints_tables_and_tests(files, capsys):
+    rng = np.random.default_rng(0)
+    recs = []
+    for s in range(3):
+        for r in range(4):
+            base = 1.0 + 0.2 * s + rng.random() * 0.1
+            recs.append(Record("ultraboneudf", f"#{s + 1}", f"r{r}", base, 3 * base))
+            recs.append(Record("capudf", f"#{s + 1}", f"r{r}", base + 0.3 + 0.01 * r, 3 * base + 1 + 0.01 * r))
+    write_results_csv(recs, files / "results.csv")
+    assert main(["stats", str(files / "results.csv"), "--baseline", "ultraboneudf", "--k", "4"]) == 0
+    out = capsys.readouterr().out
+    assert "**CD (mm)**" in out and "**HD95 (mm)**" in out and "Bonferroni k = 4" in out
+    assert "| capudf | 12 |" in out  # n = 12 paired reconstructions
+    assert main(["stats", str(files / "results.csv"), "--baseline", "ultraboneudf", "--format", "latex",
+                 "--metric", "cd_mm", "-o", str(files / "t.tex")]) == 0
+    assert "\\textbf" in (files / "t.tex").read_text()
+    assert main(["stats", str(files / "results.csv"), "--baseline", "nope"]) == 2
