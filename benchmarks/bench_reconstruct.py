@@ -124,8 +124,8 @@ def main() -> None:
                 cmd += ["--set", item]
             if args.verbose:
                 cmd.append("--verbose")
-            out = subprocess.run(cmd, capture_output=not args.verbose, text=True, check=False,
-                                 stdout=subprocess.PIPE)
+            out = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=False,
+                                 stderr=None if args.verbose else subprocess.PIPE)
             line = [ln for ln in out.stdout.splitlines() if ln.startswith("ROW ")]
             if not line:
                 print(f"{name} on {device} failed:\n{out.stderr}", file=sys.stderr)
