@@ -54,6 +54,11 @@ class DataConfig:
     keeps all."""
     noise_sigma_mm: float = 0.0
     """Gaussian noise (mm) added to the input before pre-processing (experiment E6); 0 = none."""
+    queries: str = "ultraboneudf"
+    """Query recipe: ``ultraboneudf`` (§1.3, ``queries_per_point`` per row + grid queries) or
+    ``capudf`` (§3.1: random subset of a multiple of 60 rows, spread κ·σ(p), ⌊total/N⌋ rounds)."""
+    capudf_total_queries: int = 1_000_000
+    """CAP-UDF recipe: about this many queries in all (rounds = ⌊total / N⌋)."""
 
 
 @dataclass
@@ -67,6 +72,24 @@ class ModelConfig:
     """β of the geometric initialisation: the initial field is |‖x‖ − β|."""
     abs_output: bool = True
     """Absolute value at the output (an unsigned distance field)."""
+    skip: tuple[int, ...] = ()
+    """Layers whose input is ``[h, x]/√2`` (§0.3; CAP-UDF and FUNSR: ``(4,)``). Empty: no skip (the
+    UltraBoneUDF network, whose configured skip is inactive, §1.5)."""
+    depth: int = 0
+    """§6.4 depth rule: when > 0, ``hidden`` is replaced by the first ``depth`` entries of
+    :data:`DEPTH_WIDTHS` (experiment E4); 0 uses ``hidden`` as given."""
+    poisson_depth: int = 9
+    """Poisson method (§7): octree depth."""
+    poisson_scale: float = 1.1
+    """Poisson method: the octree cube is this × the input's bounding cube."""
+    poisson_normals: str = "ultraboneudf"
+    """Poisson method normals (§7.2): ``ultraboneudf`` (PCA radius 0.5, ≤ 1,000 neighbours) or
+    ``knn30`` (PCA over 30 neighbours); both oriented by tangent-plane propagation (15 neighbours)."""
+    poisson_backend: str = "auto"
+    """Poisson library: ``auto`` (first installed of pymeshlab, open3d), ``pymeshlab`` or ``open3d``."""
+    poisson_threads: int = 0
+    """Poisson solver threads; 0 = ``torch.get_num_threads()``. On an oversubscribed CPU the OpenMP
+    solver slows down > 10× with 2 threads (measured 2 s → 34 s); use 1 there."""
 
 
 @dataclass
@@ -74,7 +97,11 @@ class LossConfig:
     """Loss terms (§1.6)."""
 
     kind: str = "tangent"
-    """``tangent`` (UltraBoneUDF, dynamic nearest neighbour) or ``pull`` (static target, §5.3)."""
+    """``tangent`` (UltraBoneUDF, dynamic nearest neighbour), ``pull`` (static target, §5.3) or
+    ``capudf`` (CAP-UDF's consistency-aware L1 Chamfer between the batch targets and moved queries,
+    §3.3). FUNSR has its own loop (§4.3) and ignores this."""
+    pull_norm: str = "squared"
+    """``pull`` loss: ``squared`` (Eq. 3 as printed) or ``unsquared`` (FUNSR's code, §4.3)."""
     tangent_norm: str = "l1"
     """Residual penalty of the tangent loss: ``l1`` (official code) or ``l2`` (paper, Eq. 6)."""
     lambda_tangent: float = 1.0
@@ -83,6 +110,10 @@ class LossConfig:
     """On-surface term (Eq. 9); experiment E5 only."""
     lambda_eik: float = 0.0
     """Eikonal term (Eq. 10); experiment E5 only."""
+    lambda_scc: float = 0.005
+    """FUNSR sign-consistency weight (§4.3)."""
+    lambda_adl: float = 0.005
+    """FUNSR adversarial on-surface weight (§4.3)."""
 
 
 @dataclass
@@ -94,6 +125,23 @@ class TrainConfig:
     lr: float = 1e-3
     warmup: int = 1_000
     """Linear warm-up iterations from lr = 0 (§0.6)."""
+    disc_lr: float = 1e-3
+    """FUNSR discriminator learning rate (constant, §4.4)."""
+    expand_at: int = 0
+    """CAP-UDF progressive expansion (§3.4): after this many iterations densify ``P`` and switch to
+    ``expand_batch``; 0 = never (one stage)."""
+    expand_batch: int = 20_000
+    """CAP-UDF stage-2 batch size."""
+    expand_candidates: int = 1_000_000
+    """CAP-UDF: generated candidate surface points (``eval_num_points``)."""
+    expand_df_filter: float = 0.01
+    """CAP-UDF: keep candidates whose predicted distance is below this (unit space)."""
+    expand_low_range: float = 1.1
+    """CAP-UDF: candidate spread = this × the std of the batch offsets ``q − t``."""
+    expand_outlier: float = 0.002
+    """CAP-UDF: discard candidates at distance ≥ this from ``P`` (unit space)."""
+    expand_rate: float = 1.0
+    """CAP-UDF: keep about ``expand_rate · N`` candidates (``extra_points_rate``), spread evenly."""
 
 
 @dataclass
@@ -115,7 +163,25 @@ class ExtractConfig:
     domain: tuple[float, float] = (-1.0, 1.0)
     """The octree cube [lo, hi]³ in unit space."""
     mode: str = "faithful"
-    """``faithful`` reproduces DualMesh-UDF; ``clean`` returns a one-layer manifold-edged mesh."""
+    """``faithful`` reproduces DualMesh-UDF; ``clean`` returns a one-layer manifold-edged mesh;
+    the grid extractors (``extraction/marching.py``): ``capudf_mc`` (CAP-UDF pseudo-sign per-cell
+    marching cubes, §3.5), ``sdf_mc`` (marching cubes of a signed field, §4.5), ``udf2sdf``
+    (CarotidUDF, §5.4)."""
+    resolution: int = 256
+    """Grid extractors: grid points per axis."""
+    grid_box: str = "domain"
+    """Grid extractors: ``domain`` (the cube ``domain``³, FUNSR/CarotidUDF) or ``surface`` (bounding box
+    of the surface points enlarged by ``box_margin`` per side, CAP-UDF)."""
+    box_margin: float = 0.05
+    """``grid_box = surface``: enlargement per side (unit space)."""
+    cell_threshold: float = 0.005
+    """``capudf_mc`` / ``local-flip``: skip cells whose smallest corner value exceeds this."""
+    udf2sdf: str = "normal-sign"
+    """``udf2sdf`` conversion: ``normal-sign`` (default), ``eps-shell`` or ``local-flip`` (§5.4)."""
+    udf2sdf_project: bool = False
+    """``eps-shell``: project the vertices onto the zero set with ``v ← v − u·ĝ``."""
+    far: float = -1.0
+    """``capudf_mc``: drop faces whose mean vertex distance to the surface points is ≥ this; ≤ 0 = off."""
     clean_crossing: float = 0.5
     """Clean mode: a leaf-lattice edge whose end gradients oppose counts as crossed only if the UDF
     at the estimated crossing is below ``clean_crossing × leaf edge + margin``."""
@@ -177,7 +243,13 @@ def _paper() -> Config:
 
 
 def _fast() -> Config:
-    """Designed for ≤ 2 minutes on a 2-core CPU for a 100k-point cloud (see README)."""
+    """Designed for a 100k-point cloud on a 2-core CPU (see README, "Presets").
+
+    Measured on the open femur (issue #3 input): what limits a short run is the number of optimiser
+    steps, not the number of queries seen — 2,000 steps × 2,000 queries left the epiphyses without a
+    zero set (CD 3.4 mm), 16,000 steps × 250 queries (the same query budget) reach CD 0.64 mm (clean)
+    / 0.40 mm (faithful). A smaller initial sphere (β = 0.1) suits elongated bones better than 0.5.
+    """
     cfg = Config()
     cfg.data.subset = "fps"
     cfg.data.max_points = 10_000
@@ -185,13 +257,30 @@ def _fast() -> Config:
     cfg.data.grid_queries = 10_000
     cfg.data.drop_to_multiple = 0
     cfg.model.hidden = (64, 128, 128, 128)
-    cfg.train.iters = 2_000
-    cfg.train.batch = 2_000
-    cfg.train.warmup = 100
+    cfg.model.geometric_init_radius = 0.1
+    cfg.train.iters = 16_000
+    cfg.train.batch = 250
+    cfg.train.warmup = 400
     cfg.train.lr = 2e-3
     cfg.extract.max_depth = 8
     cfg.extract.mode = "clean"
     return cfg
+
+
+DEPTH_WIDTHS: tuple[int, ...] = (64, 128, 128, 256, 256, 256, 256, 256, 256, 256)
+"""§6.4: hidden widths of a depth-``d`` network are the first ``d`` entries (depth 6 = default)."""
+
+
+def model_widths(model: ModelConfig) -> tuple[int, ...]:
+    """The hidden widths of ``model`` after the §6.4 depth rule."""
+    if model.depth > len(DEPTH_WIDTHS):
+        raise InputError(f"model.depth must be between 1 and {len(DEPTH_WIDTHS)}, got {model.depth}")
+    widths = tuple(int(w) for w in model.hidden) if model.depth <= 0 else DEPTH_WIDTHS[: model.depth]
+    bad = [int(k) for k in model.skip if not 1 <= int(k) <= len(widths)]
+    if bad:
+        raise InputError(f"model.skip={tuple(int(k) for k in model.skip)} needs layers 1..{len(widths)} "
+                         f"({len(widths)} hidden layers); use a deeper network or --set model.skip=")
+    return widths
 
 
 PRESETS = {"official": _official, "paper": _paper, "fast": _fast}

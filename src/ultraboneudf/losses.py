@@ -20,9 +20,60 @@ def tangent_loss(residual: torch.Tensor, norm: str) -> torch.Tensor:
     raise ValueError(f"unknown tangent norm {norm!r}")
 
 
-def pull_loss(moved: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """``L_pull = mean ‖q' − t(q)‖²`` with the static nearest surface point ``t(q)`` (Eq. 3)."""
-    return (moved - target).square().sum(dim=1).mean()
+def pull_loss(moved: torch.Tensor, target: torch.Tensor, norm: str = "squared") -> torch.Tensor:
+    """``L_pull = mean ‖q' − t(q)‖²`` with the static nearest surface point ``t(q)`` (Eq. 3);
+    ``norm="unsquared"`` gives ``mean ‖q' − t(q)‖`` (FUNSR's code, §4.3)."""
+    sq = (moved - target).square().sum(dim=1)
+    if norm == "squared":
+        return sq.mean()
+    if norm == "unsquared":
+        # tiny ε: the norm's gradient is undefined where q' = t exactly
+        return (sq + 1e-12).sqrt().mean()
+    raise ValueError(f"unknown pull norm {norm!r}")
+
+
+def _nearest_rows(a: torch.Tensor, b: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
+    """Index (len(a),) of the nearest row of ``b`` for every row of ``a``, without a graph; chunked
+    so that a 20,000 × 20,000 stage-2 batch never materialises whole."""
+    out = []
+    with torch.no_grad():
+        b_sq = b.square().sum(dim=1)
+        for ac in a.split(chunk):
+            out.append(torch.addmm(b_sq, ac, b.T, beta=1.0, alpha=-2.0).argmin(dim=1))
+    return torch.cat(out)
+
+
+def consistency_chamfer_loss(targets: torch.Tensor, moved: torch.Tensor) -> torch.Tensor:
+    """CAP-UDF's consistency-aware loss (§3.3): symmetric L1 Chamfer distance between the batch
+    targets ``A = {t(q)}`` (K, 3) and the moved queries ``B = {q'}`` (K, 3), Euclidean (not squared).
+
+    The matching is found without a graph and the matched distances are recomputed with one: the
+    gradient of a minimum is the gradient of its arg-min term, so this equals differentiating the
+    full matrix."""
+    to_b = _nearest_rows(targets, moved)
+    to_a = _nearest_rows(moved, targets)
+    d_ab = ((targets - moved[to_b]).square().sum(dim=1) + 1e-12).sqrt()
+    d_ba = ((moved - targets[to_a]).square().sum(dim=1) + 1e-12).sqrt()
+    return 0.5 * (d_ab.mean() + d_ba.mean())
+
+
+def sign_consistency_loss(g_hat: torch.Tensor, moved: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """FUNSR ``L_SCC = mean(1 − cos(ĝ(q), normalise(q' − t)))`` (§4.3 item 3); a zero offset gives
+    cosine 0 (constant loss 1, no gradient)."""
+    w = moved - target
+    w = w / w.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    cos = (g_hat * w).sum(dim=1) / (g_hat.norm(dim=1) * w.norm(dim=1)).clamp_min(1e-8)
+    return (1.0 - cos).mean()
+
+
+def lsgan_discriminator_loss(d_real: torch.Tensor, d_fake: torch.Tensor) -> torch.Tensor:
+    """Least-squares GAN discriminator loss ``mean (D(real) − 1)² + mean D(fake)²`` (§4.3 item 4)."""
+    return (d_real - 1.0).square().mean() + d_fake.square().mean()
+
+
+def lsgan_generator_loss(d_fake: torch.Tensor) -> torch.Tensor:
+    """Least-squares GAN generator term ``mean (D(fake) − 1)²`` (FUNSR's ``L_ADL``)."""
+    return (d_fake - 1.0).square().mean()
 
 
 def global_shape_loss(u_anchor: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -105,17 +105,21 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
     preset : ``official`` (the reference code), ``paper`` (the paper's text) or ``fast``.
     device : ``auto``, ``cpu``, ``cuda`` or a torch device.
     seed : seeds every random draw; same input, config, seed and device give the same mesh.
-    method : a name from :data:`ultraboneudf.methods.METHODS`.
-    config : a full :class:`Config` to use instead of the preset.
+    method : a name from :data:`ultraboneudf.methods.METHODS`; its ``configure`` sets the method's
+        own defaults (network, loss, schedule, extractor) on the preset before the overrides.
+    config : a full :class:`Config` to use instead of the preset (taken as is: no method defaults).
     assignments, overrides : ``"section.key=value"`` strings and keyword overrides of the preset
         (``iters=1000``, ``extract__max_depth=8``).
     progress / quiet : a :class:`Progress` to report to, or ``quiet=False`` for a default one.
     """
     t_start = time.perf_counter()
     progress = progress or Progress(quiet=quiet)
+    entry = get_method(method)
     cfg = config if config is not None else make_preset(preset)
+    if config is None:
+        entry.configure(cfg, preset)  # the method's own defaults, before the user's overrides
     apply_overrides(cfg, overrides, assignments)
-    fit = get_method(method)
+    fit = entry.fit
     dev = resolve_device(device)
     points = validate_points(points_mm, source=source)
     seed_everything(seed)
@@ -133,7 +137,8 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
     if fitted.mesh is not None:
         unit_mesh = fitted.mesh
     elif fitted.field is not None:
-        unit_mesh = extract_mesh(fitted.field, cfg.extract, progress)
+        unit_mesh = extract_mesh(fitted.field, cfg.extract, progress, surface=fitted.surface,
+                                 normals=fitted.normals)
     else:
         unit_mesh = None
     if dev.type == "cuda":

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import torch
 from torch import nn
@@ -18,8 +19,8 @@ from .config import LossConfig, TrainConfig
 from .fields.base import normalize
 from .fields.mlp import value_and_grad
 from .geometry.neighbors import NearestIndex
-from .losses import (eikonal_loss, global_shape_loss, on_surface_loss, pull_loss, tangent_loss,
-                     tangent_residual)
+from .losses import (consistency_chamfer_loss, eikonal_loss, global_shape_loss, on_surface_loss,
+                     pull_loss, tangent_loss, tangent_residual)
 from .progress import QUIET, Progress
 
 
@@ -56,7 +57,7 @@ class TrainingData:
     queries: torch.Tensor            # (T, 3)
     anchors: torch.Tensor            # (G, 3)
     anchor_targets: torch.Tensor     # (G,)
-    static_targets: torch.Tensor | None = None  # (T, 3) t(q), only for the pull loss
+    static_targets: torch.Tensor | None = None  # (T, 3) t(q), for the pull and CAP-UDF losses
 
 
 @dataclass
@@ -79,8 +80,11 @@ def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: Train
         terms["tangent"] = tangent_loss(tangent_residual(q, u, g_hat, foot), cfg.tangent_norm)
         total = cfg.lambda_tangent * terms["tangent"]
     elif cfg.kind == "pull":
-        terms["pull"] = pull_loss(moved, data.static_targets[batch])
+        terms["pull"] = pull_loss(moved, data.static_targets[batch], cfg.pull_norm)
         total = terms["pull"]
+    elif cfg.kind == "capudf":
+        terms["cd"] = consistency_chamfer_loss(data.static_targets[batch], moved)
+        total = terms["cd"]
     else:
         raise ValueError(f"unknown loss kind {cfg.kind!r}")
     if cfg.lambda_gs and len(data.anchors):
@@ -104,8 +108,13 @@ def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: Train
 
 
 def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: TrainConfig,
-          seed: int, progress: Progress = QUIET, log_every: int = 100) -> TrainResult:
-    """Optimise ``net`` in place on ``data`` for ``train_cfg.iters`` iterations (Adam, §1.7)."""
+          seed: int, progress: Progress = QUIET, log_every: int = 100,
+          expand: Callable[[nn.Module, TrainingData], torch.Tensor] | None = None) -> TrainResult:
+    """Optimise ``net`` in place on ``data`` for ``train_cfg.iters`` iterations (Adam, §1.7).
+
+    ``expand`` (CAP-UDF's progressive expansion, §3.4): called once after ``train_cfg.expand_at``
+    completed steps with the network and the data; it returns the new static targets (T, 3), and the
+    batch becomes ``train_cfg.expand_batch``. The optimiser state and the schedule carry over."""
     device = data.queries.device
     generator = torch.Generator(device=device).manual_seed(seed)
     sampler = StridedSampler(len(data.queries), train_cfg.batch, generator, device)
@@ -118,6 +127,11 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     start = time.perf_counter()
     with progress.stage("training", iters) as advance:
         for i in range(iters):
+            if expand is not None and train_cfg.expand_at > 0 and i == train_cfg.expand_at:
+                net.eval()
+                data.static_targets = expand(net, data)
+                net.train()
+                sampler = StridedSampler(len(data.queries), train_cfg.expand_batch, generator, device)
             for group in opt.param_groups:
                 group["lr"] = learning_rate(i, train_cfg.lr, train_cfg.warmup, iters)
             batch = sampler()

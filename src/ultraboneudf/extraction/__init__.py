@@ -2,34 +2,82 @@
 
 :func:`extract_mesh` dispatches on ``ExtractConfig.mode``: ``faithful`` runs DualMesh-UDF exactly as
 the reference (:func:`dualmesh_udf`), ``clean`` a one-layer, edge-manifold variant
-(:func:`clean_udf_mesh`). Both return a unit-space ``trimesh.Trimesh`` or ``None`` (no mesh).
+(:func:`clean_udf_mesh`); the grid extractors of the baselines (``marching.py``): ``capudf_mc``
+(CAP-UDF, §3.5), ``sdf_mc`` (FUNSR, §4.5) and ``udf2sdf`` (CarotidUDF, §5.4). All return a unit-space
+``trimesh.Trimesh`` or ``None`` (no mesh).
 """
 
 from __future__ import annotations
 
+import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from ..config import ExtractConfig
 from ..errors import InputError
 from ..fields.base import Field
 from ..progress import QUIET, Progress
 from .clean import clean_udf_mesh
+from .marching import (capudf_marching_cubes, sdf_marching_cubes, udf_to_sdf_marching_cubes)
 from .dualmesh import CORNER, EDGE, PLANE, TYPE_NAMES, band_threshold, dualmesh_udf
 from .quality import mesh_quality
 
-MODES = ("faithful", "clean")
+MODES = ("faithful", "clean", "capudf_mc", "sdf_mc", "udf2sdf")
 
 
-def extract_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET) -> trimesh.Trimesh | None:
+def _grid_box(cfg: ExtractConfig, surface: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The grid's box: ``domain``³, or the surface's bounding box enlarged by ``box_margin``."""
+    if cfg.grid_box == "domain":
+        return np.full(3, cfg.domain[0], float), np.full(3, cfg.domain[1], float)
+    if cfg.grid_box == "surface":
+        if surface is None or not len(surface):
+            raise InputError("extract.grid_box=surface needs the surface points; this method provides none "
+                             "(use --set extract.grid_box=domain)")
+        return surface.min(axis=0) - cfg.box_margin, surface.max(axis=0) + cfg.box_margin
+    raise InputError(f"unknown extract.grid_box {cfg.grid_box!r}; choose domain or surface")
+
+
+def _trim_far(mesh: trimesh.Trimesh | None, surface: np.ndarray | None, far: float) -> trimesh.Trimesh | None:
+    """CAP-UDF ``far`` trimming (§3.5 step 6): drop faces whose mean vertex distance to ``surface``
+    is ≥ ``far``, then unreferenced vertices."""
+    if mesh is None or far <= 0 or surface is None:
+        return mesh
+    dist, _ = cKDTree(surface).query(mesh.vertices, k=1, workers=-1)
+    keep = dist[mesh.faces].mean(axis=1) < far
+    if not keep.any():
+        return None
+    out = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
+    out.remove_unreferenced_vertices()
+    return out
+
+
+def extract_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET, *,
+                 surface: np.ndarray | None = None, normals: np.ndarray | None = None
+                 ) -> trimesh.Trimesh | None:
     """Extract a mesh of the zero set of ``field`` with the extractor chosen by ``cfg.mode``.
 
-    Returns the mesh in the field's coordinates, or ``None`` when there is no surface."""
+    ``surface`` (N, 3) and ``normals`` (N, 3), unit space, are used by the grid extractors that need
+    them (``grid_box = surface``, ``far``, ``udf2sdf = normal-sign``). Returns the mesh in the field's
+    coordinates, or ``None`` when there is no surface."""
     if cfg.mode == "faithful":
         return dualmesh_udf(field, cfg, progress)
     if cfg.mode == "clean":
         return clean_udf_mesh(field, cfg, progress)
+    if cfg.resolution < 2:
+        raise InputError(f"extract.resolution must be at least 2, got {cfg.resolution}")
+    if cfg.mode == "capudf_mc":
+        lo, hi = _grid_box(cfg, surface)
+        mesh = capudf_marching_cubes(field, lo, hi, cfg.resolution, cfg.cell_threshold, cfg.batch, progress)
+        return _trim_far(mesh, surface, cfg.far)
+    if cfg.mode == "sdf_mc":
+        return sdf_marching_cubes(field, cfg.resolution, tuple(cfg.domain), cfg.batch, progress)
+    if cfg.mode == "udf2sdf":
+        return udf_to_sdf_marching_cubes(field, cfg.udf2sdf, cfg.resolution, tuple(cfg.domain), surface,
+                                         normals, project=cfg.udf2sdf_project, threshold=cfg.cell_threshold,
+                                         batch=cfg.batch, progress=progress)
     raise InputError(f"unknown extraction mode {cfg.mode!r}; choose one of {', '.join(MODES)}")
 
 
-__all__ = ["extract_mesh", "dualmesh_udf", "clean_udf_mesh", "mesh_quality", "band_threshold", "MODES",
+__all__ = ["extract_mesh", "dualmesh_udf", "clean_udf_mesh", "capudf_marching_cubes", "sdf_marching_cubes",
+           "udf_to_sdf_marching_cubes", "mesh_quality", "band_threshold", "MODES",
            "CORNER", "EDGE", "PLANE", "TYPE_NAMES"]

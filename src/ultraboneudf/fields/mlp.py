@@ -40,15 +40,23 @@ class WNLinear(nn.Module):
 
 class DistanceMLP(nn.Module):
     """``dims = [3, *hidden, 1]``; ReLU after every layer but the last; ``|·|`` at the output if
-    ``abs_output``. Input in unit space ``(M, 3)``, output ``(M,)`` in unit-space distance."""
+    ``abs_output``. Input in unit space ``(M, 3)``, output ``(M,)`` in unit-space distance.
+
+    ``skip``: indices ``l`` of layers whose input is ``[h, x]/√2`` (§0.3); the layer before each such
+    ``l`` emits ``dims[l] − in_dim`` features so that widths are kept (CAP-UDF/FUNSR: ``(4,)``)."""
 
     def __init__(self, hidden: tuple[int, ...] = (64, 128, 128, 256, 256, 256), weight_norm: bool = True,
                  radius: float = 0.5, abs_output: bool = True, in_dim: int = 3,
-                 generator: torch.Generator | None = None) -> None:
+                 generator: torch.Generator | None = None, skip: tuple[int, ...] = ()) -> None:
         super().__init__()
         dims = [in_dim, *hidden, 1]
+        self.skip = frozenset(int(s) for s in skip)
+        if any(s <= 0 or s >= len(dims) - 1 for s in self.skip):
+            raise ValueError(f"skip layers must lie in 1..{len(dims) - 2}, got {sorted(self.skip)}")
         layers = []
         for i, (fan_in, fan_out) in enumerate(zip(dims[:-1], dims[1:])):
+            if i + 1 in self.skip:
+                fan_out = fan_out - in_dim  # the skip concatenation restores the width
             if i == len(dims) - 2:
                 # last layer: output ≈ ‖x‖ − radius (the signed distance to a sphere) at initialisation
                 v = torch.normal(math.sqrt(math.pi) / math.sqrt(fan_in), 1e-4, (fan_out, fan_in),
@@ -64,9 +72,15 @@ class DistanceMLP(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = x
-        for layer in self.layers[:-1]:
-            h = torch.relu(layer(h))
-        out = self.layers[-1](h).squeeze(-1)
+        last = len(self.layers) - 1
+        for i, layer in enumerate(self.layers):
+            if i in self.skip:
+                # √2 keeps the activation scale of the concatenated input (IGR convention)
+                h = torch.cat([h, x], dim=-1) / math.sqrt(2.0)
+            h = layer(h)
+            if i < last:
+                h = torch.relu(h)
+        out = h.squeeze(-1)
         return out.abs() if self.abs_output else out
 
 

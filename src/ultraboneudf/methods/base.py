@@ -3,6 +3,10 @@
 A method is ``fit(points, config, device, seed, progress) -> Fitted`` where ``points`` is the
 pre-processed cloud in *unit space* (``(N, 3)`` float64, see :class:`~ultraboneudf.geometry.Normalizer`).
 It returns a field for the extractor, or a unit-space mesh directly (e.g. Poisson).
+
+The registry (:data:`ultraboneudf.methods.METHODS`) holds one :class:`Method` per name: its ``fit``
+and a ``configure(cfg, preset)`` that sets the method's own defaults (network, loss, schedule,
+extractor) on a fresh preset config *before* the user's overrides are applied.
 """
 
 from __future__ import annotations
@@ -29,6 +33,24 @@ class Fitted:
     counts: dict[str, int] = dc_field(default_factory=dict)
     timings: dict[str, float] = dc_field(default_factory=dict)  # preprocess_s, train_s
     history: dict[str, list[float]] = dc_field(default_factory=dict)
+    surface: np.ndarray | None = None
+    """Unit-space surface points (N, 3) for extractors that need them (CAP-UDF box, UDF→SDF signs)."""
+    normals: np.ndarray | None = None
+    """Oriented unit normals (N, 3) of ``surface`` (CarotidUDF ``normal-sign`` conversion)."""
 
 
 FitFunction = Callable[[np.ndarray, Config, torch.device, int, Progress], Fitted]
+ConfigureFunction = Callable[[Config, str], None]
+
+
+def keep_preset(cfg: Config, preset: str) -> None:
+    """``configure`` of a method whose defaults are the presets themselves (UltraBoneUDF)."""
+
+
+@dataclass(frozen=True)
+class Method:
+    """A registry entry: ``fit`` and ``configure(cfg, preset_name)`` (method defaults, in place)."""
+
+    fit: FitFunction
+    configure: ConfigureFunction = keep_preset
+    summary: str = ""

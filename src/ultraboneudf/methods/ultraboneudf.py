@@ -9,7 +9,7 @@ import time
 import numpy as np
 import torch
 
-from ..config import Config
+from ..config import Config, model_widths
 from ..fields.mlp import DistanceMLP, MLPField, count_parameters
 from ..geometry.neighbors import NearestIndex
 from ..geometry.queries import anchors, gaussian_queries, grid_queries, query_spread, surface_subset
@@ -19,12 +19,15 @@ from .base import Fitted
 
 
 def prepare(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
-            progress: Progress = QUIET) -> TrainingData:
+            progress: Progress = QUIET, static_targets: bool | None = None) -> TrainingData:
     """Surface rows, queries (+ static targets for the pull loss) and anchors, on ``device`` (§1.2–1.4).
 
     ``points`` is the voxelised, normalised cloud (unit space). Random draws use a NumPy generator
-    seeded with ``seed`` so that the samples are identical on every device.
+    seeded with ``seed`` so that the samples are identical on every device. ``static_targets``:
+    compute ``t(q)`` (default: when the loss needs it, kinds ``pull`` and ``capudf``).
     """
+    if static_targets is None:
+        static_targets = cfg.loss.kind in ("pull", "capudf")
     d = cfg.data
     rng = np.random.default_rng(seed)
     with progress.stage("sampling", 4) as advance:
@@ -46,7 +49,7 @@ def prepare(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
         as_t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
         data = TrainingData(surface=as_t(surface), queries=as_t(queries), anchors=as_t(anchor_pts),
                             anchor_targets=as_t(anchor_tgt))
-        if cfg.loss.kind == "pull":
+        if static_targets:
             # static nearest surface point t(q), computed once (§1.3 step 5)
             idx = NearestIndex(data.surface).query(data.queries).to(device)
             data.static_targets = data.surface[idx]
@@ -58,8 +61,8 @@ def build_network(cfg: Config, seed: int, device: torch.device) -> torch.nn.Modu
     """The MLP of ``cfg.model``, initialised from ``seed`` on the CPU (identical on every device)."""
     gen = torch.Generator().manual_seed(seed)
     m = cfg.model
-    net = DistanceMLP(tuple(m.hidden), weight_norm=m.weight_norm, radius=m.geometric_init_radius,
-                      abs_output=m.abs_output, generator=gen)
+    net = DistanceMLP(model_widths(m), weight_norm=m.weight_norm, radius=m.geometric_init_radius,
+                      abs_output=m.abs_output, generator=gen, skip=tuple(int(k) for k in m.skip))
     return net.to(device)
 
 

@@ -1,0 +1,85 @@
+"""CarotidUDF (§5, inferred) and the Table 8 ablation variants (§5.5).
+
+All three train an MLP UDF with the static pull loss ``L_pull`` on the UltraBoneUDF data pipeline and
+differ in network and extraction:
+
+| method | network | extraction |
+| --- | --- | --- |
+| ``carotidudf`` | ``[3, 256×8, 1]``, no skip (463,874 parameters) | UDF→SDF + marching cubes (§5.4) |
+| ``vanilla_udf`` | UltraBoneUDF (191,042) | UDF→SDF + marching cubes |
+| ``ultraboneudf_pull`` | UltraBoneUDF | DualMesh-UDF as the preset |
+
+``L_GS`` is not added (§5.5 default). The fit also returns the surface rows and their oriented
+normals (§1.2 steps 4, 6), which the ``normal-sign`` conversion needs.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from ..config import Config
+from ..fields.mlp import MLPField, count_parameters
+from ..progress import QUIET, Progress
+from ..training import train
+from .base import Fitted
+from .normals import ultraboneudf_normals
+from .ultraboneudf import build_network, prepare
+
+
+def _pull_only(cfg: Config) -> None:
+    """``L_pull`` (Eq. 3, squared) alone: no L_GS, no anchors (§5.3, §5.5)."""
+    cfg.loss.kind = "pull"
+    cfg.loss.pull_norm = "squared"
+    cfg.loss.lambda_gs = 0.0
+    cfg.data.anchors = "none"
+
+
+def _udf2sdf_extraction(cfg: Config, preset: str) -> None:
+    """§5.4: ``normal-sign`` marching cubes on 256³ points over [−1, 1]³ (128³ for ``fast``)."""
+    cfg.extract.mode = "udf2sdf"
+    cfg.extract.udf2sdf = "normal-sign"
+    cfg.extract.resolution = 128 if preset == "fast" else 256
+    cfg.extract.grid_box = "domain"
+    cfg.extract.domain = (-1.0, 1.0)
+    cfg.extract.batch = 1_000_000
+
+
+def configure_carotidudf(cfg: Config, preset: str) -> None:
+    """CarotidUDF defaults (§5.2–5.4); iterations and batch stay the preset's (30,000 × 5,000)."""
+    _pull_only(cfg)
+    cfg.model.hidden = (256,) * 8
+    cfg.model.skip = ()
+    _udf2sdf_extraction(cfg, preset)
+
+
+def configure_vanilla(cfg: Config, preset: str) -> None:
+    """Vanilla UDF (§5.5): UltraBoneUDF network, ``L_pull``, CarotidUDF extraction."""
+    _pull_only(cfg)
+    _udf2sdf_extraction(cfg, preset)
+
+
+def configure_pull(cfg: Config, preset: str) -> None:
+    """UltraBoneUDF(L_pull) (§5.5): UltraBoneUDF network and extraction, ``L_pull`` only."""
+    _pull_only(cfg)
+
+
+def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
+        progress: Progress = QUIET) -> Fitted:
+    """Train the pull-loss UDF on a unit-space cloud; returns the field, the surface rows and (when
+    the extractor needs them) their oriented normals."""
+    t0 = time.perf_counter()
+    data = prepare(points, cfg, device, seed, progress)
+    surface = data.surface.detach().double().cpu().numpy()
+    normals = None
+    if cfg.extract.mode == "udf2sdf" and cfg.extract.udf2sdf == "normal-sign":
+        normals = ultraboneudf_normals(surface, points)
+    prep_s = time.perf_counter() - t0
+    net = build_network(cfg, seed, device)
+    result = train(net, data, cfg.loss, cfg.train, seed, progress)
+    counts = {"surface_points": len(data.surface), "queries": len(data.queries),
+              "anchors": len(data.anchors), "parameters": count_parameters(net)}
+    return Fitted(field=MLPField(net), counts=counts, timings={"preprocess_s": prep_s, "train_s": result.seconds},
+                  history=result.history, surface=surface, normals=normals)

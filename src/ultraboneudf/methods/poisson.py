@@ -1,0 +1,131 @@
+"""Screened Poisson surface reconstruction (§7): depth 9 on the pre-processed cloud with the
+UltraBoneUDF normal recipe (§7.2), no density trimming.
+
+The solver comes from an optional extra (``pip install 'ultraboneudf[poisson]'``); it is imported
+only when the method runs. Backends: ``pymeshlab`` (the extra's choice: one wheel, NumPy its only
+dependency) and ``open3d`` (the paper's library; a heavier install). ``model.poisson_backend=auto``
+uses the first one installed, in that order.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+import trimesh
+
+from ..config import Config
+from ..errors import InputError
+from ..geometry.queries import surface_subset
+from ..progress import QUIET, Progress
+from .base import Fitted
+from .normals import orient_tangent_plane, pca_normals
+
+BACKENDS = ("pymeshlab", "open3d")
+INSTALL_HINT = ("the poisson method needs a screened-Poisson library: pip install 'ultraboneudf[poisson]' "
+                "(installs pymeshlab), or pip install open3d and --set model.poisson_backend=open3d")
+
+
+def configure(cfg: Config, preset: str) -> None:
+    """Nothing to train: the preset's data settings pick the input cloud (§7.1)."""
+    cfg.train.iters = 0
+
+
+def estimate_normals(surface: np.ndarray, cloud: np.ndarray, rule: str) -> np.ndarray:
+    """Oriented normals of ``surface`` (§7.2): ``ultraboneudf`` (PCA radius 0.5 ≤ 1,000 neighbours
+    on ``cloud``, tangent-plane orientation with 15 neighbours) or ``knn30`` (PCA over the 30 nearest
+    points, same orientation)."""
+    if rule == "ultraboneudf":
+        raw = pca_normals(surface, cloud, radius=0.5, max_nn=1_000)
+    elif rule == "knn30":
+        raw = pca_normals(surface, cloud, radius=np.inf, max_nn=30)
+    else:
+        raise InputError(f"unknown model.poisson_normals {rule!r}; choose ultraboneudf or knn30")
+    return orient_tangent_plane(surface, raw, 15)
+
+
+def _pymeshlab(points: np.ndarray, normals: np.ndarray, depth: int, scale: float, threads: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=points, v_normals_matrix=normals))
+    ms.generate_surface_reconstruction_screened_poisson(depth=depth, scale=scale, preclean=False,
+                                                        threads=threads)
+    m = ms.current_mesh()
+    return np.asarray(m.vertex_matrix(), dtype=float), np.asarray(m.face_matrix(), dtype=np.int64)
+
+
+def _open3d(points: np.ndarray, normals: np.ndarray, depth: int, scale: float, threads: int
+            ) -> tuple[np.ndarray, np.ndarray]:
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.normals = o3d.utility.Vector3dVector(normals)
+    mesh, _densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+        pcd, depth=depth, width=0, scale=scale, linear_fit=False, n_threads=threads)
+    return np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.triangles, dtype=np.int64)
+
+
+def _available(name: str) -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec(name) is not None
+
+
+def resolve_backend(name: str) -> str:
+    """The backend to use for ``model.poisson_backend``; raises :class:`InputError` with the install
+    command when none (or not the requested one) is installed."""
+    if name == "auto":
+        for candidate in BACKENDS:
+            if _available(candidate):
+                return candidate
+        raise InputError(INSTALL_HINT)
+    if name not in BACKENDS:
+        raise InputError(f"unknown model.poisson_backend {name!r}; choose auto, {', '.join(BACKENDS)}")
+    if not _available(name):
+        raise InputError(f"model.poisson_backend={name} is not installed: pip install {name} "
+                         f"(or use the default: pip install 'ultraboneudf[poisson]')")
+    return name
+
+
+def screened_poisson(points: np.ndarray, normals: np.ndarray, depth: int = 9, scale: float = 1.1,
+                     backend: str = "auto", threads: int = 0) -> trimesh.Trimesh | None:
+    """Screened Poisson mesh of oriented ``points``/``normals`` (N, 3) at octree ``depth``; library
+    defaults otherwise (width 0, no linear fit). ``threads`` < 1: ``torch.get_num_threads()``.
+    ``None`` when empty."""
+    name = resolve_backend(backend)
+    if threads < 1:
+        threads = max(1, torch.get_num_threads())
+    run = _pymeshlab if name == "pymeshlab" else _open3d
+    v, f = run(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(normals, dtype=np.float64),
+               depth, scale, threads)
+    if not len(f):
+        return None
+    return trimesh.Trimesh(vertices=v, faces=f, process=False)
+
+
+def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
+        progress: Progress = QUIET) -> Fitted:
+    """Poisson on the preset's surface subset of the unit-space cloud (scale-invariant, §7.3);
+    returns a unit-space mesh."""
+    backend = resolve_backend(cfg.model.poisson_backend)  # fail before any work when missing
+    d = cfg.data
+    t0 = time.perf_counter()
+    with progress.stage("normals", 1) as advance:
+        surface = surface_subset(points, d.subset, d.subset_threshold, d.fps_sizes, d.max_points,
+                                 device=str(device))
+        # duplicated FPS rows (official subset) would only double-weight points in the solver
+        surface = np.unique(surface, axis=0)
+        normals = estimate_normals(surface, points, cfg.model.poisson_normals)
+        advance()
+    prep_s = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    with progress.stage(f"screened poisson ({backend}, depth {cfg.model.poisson_depth})", 1) as advance:
+        mesh = screened_poisson(surface, normals, cfg.model.poisson_depth, cfg.model.poisson_scale, backend,
+                                threads=cfg.model.poisson_threads)
+        advance()
+    return Fitted(mesh=mesh, counts={"surface_points": len(surface), "queries": 0, "parameters": 0},
+                  timings={"preprocess_s": prep_s, "train_s": time.perf_counter() - t1},
+                  surface=surface, normals=normals)
