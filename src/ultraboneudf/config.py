@@ -249,6 +249,7 @@ def _fast() -> Config:
     steps, not the number of queries seen — 2,000 steps × 2,000 queries left the epiphyses without a
     zero set (CD 3.4 mm), 16,000 steps × 250 queries (the same query budget) reach CD 0.64 mm (clean)
     / 0.40 mm (faithful). A smaller initial sphere (β = 0.1) suits elongated bones better than 0.5.
+    On an idle 2-core CPU one iteration takes 24 ms (≈ 6.6 min in all), over the 2-minute goal.
     """
     cfg = Config()
     cfg.data.subset = "fps"
