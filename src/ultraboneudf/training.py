@@ -67,6 +67,34 @@ class TrainResult:
     history: dict[str, list[float]] = field(default_factory=dict)
 
 
+class LoopLog:
+    """Bookkeeping shared by the training loops: the loss terms every ``log_every`` steps (and the
+    last) kept as device tensors and read once at the end, progress ticks, and the wall time of the
+    loop, synchronised with the device."""
+
+    def __init__(self, iters: int, advance: Callable[[float], None], device: torch.device,
+                 log_every: int) -> None:
+        self.iters, self.advance, self.device, self.log_every = iters, advance, device, log_every
+        self.tick = max(1, min(50, iters // 100))
+        self.terms: dict[str, list[torch.Tensor]] = {}
+        self.start = time.perf_counter()
+
+    def step(self, i: int, terms: dict[str, torch.Tensor]) -> None:
+        """Record after the 0-based step ``i``."""
+        if i % self.log_every == 0 or i == self.iters - 1:
+            for key, value in terms.items():
+                self.terms.setdefault(key, []).append(value.detach())
+        if (i + 1) % self.tick == 0:
+            self.advance(self.tick)
+
+    def finish(self) -> tuple[float, dict[str, list[float]]]:
+        """Seconds since the start and the history as plain lists (one host read)."""
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        seconds = time.perf_counter() - self.start
+        return seconds, {k: torch.stack(v).cpu().tolist() for k, v in self.terms.items()}
+
+
 def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: TrainingData,
                cfg: LossConfig, nn_index: NearestIndex) -> dict[str, torch.Tensor]:
     """All active loss terms for one batch of queries ``q`` (K, 3) (rows ``batch`` of the store),
@@ -120,12 +148,10 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     sampler = StridedSampler(len(data.queries), train_cfg.batch, generator, device)
     nn_index = NearestIndex(data.surface)
     opt = torch.optim.Adam(net.parameters(), lr=0.0, betas=(0.9, 0.999), eps=1e-8, weight_decay=0.0)
-    history: dict[str, list[torch.Tensor]] = {}
     iters = train_cfg.iters
-    tick = max(1, min(50, iters // 100))
     net.train()
-    start = time.perf_counter()
     with progress.stage("training", iters) as advance:
+        log = LoopLog(iters, advance, device, log_every)
         for i in range(iters):
             if expand is not None and train_cfg.expand_at > 0 and i == train_cfg.expand_at:
                 net.eval()
@@ -139,14 +165,7 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
             terms = loss_terms(net, data.queries[batch], batch, data, loss_cfg, nn_index)
             terms["total"].backward()
             opt.step()
-            if i % log_every == 0 or i == iters - 1:
-                for key, value in terms.items():
-                    history.setdefault(key, []).append(value.detach())
-            if (i + 1) % tick == 0:
-                advance(tick)
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    seconds = time.perf_counter() - start
+            log.step(i, terms)
+    seconds, history = log.finish()
     net.eval()
-    return TrainResult(seconds=seconds, iterations=iters,
-                       history={k: torch.stack(v).cpu().tolist() for k, v in history.items()})
+    return TrainResult(seconds=seconds, iterations=iters, history=history)

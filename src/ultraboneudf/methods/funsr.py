@@ -17,7 +17,7 @@ from ..fields.base import normalize
 from ..fields.mlp import MLPField, count_parameters, value_and_grad
 from ..losses import lsgan_discriminator_loss, lsgan_generator_loss, pull_loss, sign_consistency_loss
 from ..progress import QUIET, Progress
-from ..training import StridedSampler, learning_rate
+from ..training import LoopLog, StridedSampler, learning_rate
 from .base import Fitted
 from .ultraboneudf import build_network, prepare
 
@@ -91,11 +91,9 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     opt = torch.optim.Adam(net.parameters(), lr=0.0, betas=(0.9, 0.999), eps=1e-8)
     opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.train.disc_lr, betas=(0.9, 0.999), eps=1e-8)
     lc, iters = cfg.loss, cfg.train.iters
-    history: dict[str, list[torch.Tensor]] = {}
-    tick = max(1, min(50, iters // 100))
     net.train()
-    start = time.perf_counter()
     with progress.stage("training", iters) as advance:
+        log = LoopLog(iters, advance, device, log_every)
         for i in range(iters):
             for group in opt.param_groups:
                 group["lr"] = learning_rate(i, cfg.train.lr, cfg.train.warmup, iters)
@@ -116,17 +114,10 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
             terms["total"] = terms["pull"] + lc.lambda_scc * terms["scc"] + lc.lambda_adl * terms["adl"]
             terms["total"].backward()
             opt.step()
-            if i % log_every == 0 or i == iters - 1:
-                for key, value in terms.items():
-                    history.setdefault(key, []).append(value.detach())
-            if (i + 1) % tick == 0:
-                advance(tick)
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    train_s = time.perf_counter() - start
+            log.step(i, terms)
+    train_s, hist = log.finish()
     net.eval()
     counts = {"surface_points": len(data.surface), "queries": len(data.queries), "anchors": 0,
               "parameters": count_parameters(net), "discriminator_parameters": count_parameters(disc)}
-    hist = {k: torch.stack(v).cpu().tolist() for k, v in history.items()}
     return Fitted(field=MLPField(net), counts=counts, timings={"preprocess_s": prep_s, "train_s": train_s},
                   history=hist, surface=data.surface.detach().double().cpu().numpy())
