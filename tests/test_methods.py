@@ -17,7 +17,7 @@ from ultraboneudf.losses import (consistency_chamfer_loss, lsgan_discriminator_l
 from ultraboneudf.methods import METHODS, get_method
 from ultraboneudf.methods.capudf import capudf_samples, even_subsample
 from ultraboneudf.methods.funsr import Discriminator
-from ultraboneudf.methods.normals import orient_tangent_plane, orient_toward, pca_normals
+from ultraboneudf.geometry.normals import orient_tangent_plane, orient_toward, pca_normals
 from ultraboneudf.methods.ultraboneudf import build_network
 
 ALL = ("ultraboneudf", "capudf", "funsr", "carotidudf", "poisson", "vanilla_udf", "ultraboneudf_pull")

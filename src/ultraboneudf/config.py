@@ -84,7 +84,12 @@ class ModelConfig:
     """Poisson method: the octree cube is this × the input's bounding cube."""
     poisson_normals: str = "ultraboneudf"
     """Poisson method normals (§7.2): ``ultraboneudf`` (PCA radius 0.5, ≤ 1,000 neighbours) or
-    ``knn30`` (PCA over 30 neighbours); both oriented by tangent-plane propagation (15 neighbours)."""
+    ``knn30`` (PCA over 30 neighbours); oriented as ``poisson_orientation`` says."""
+    poisson_orientation: str = "auto"
+    """Poisson method normal orientation (§7.2): ``tangent`` (tangent-plane propagation, 15
+    neighbours), ``probe`` (each normal turned toward the probe position of its point, alternative B;
+    needs per-point probe positions: a sweep input or ``reconstruct(..., probe_positions=…)``) or
+    ``auto`` (``probe`` when probe positions are present, else ``tangent``)."""
     poisson_backend: str = "auto"
     """Poisson library: ``auto`` (first installed of pymeshlab, open3d), ``pymeshlab`` or ``open3d``."""
     poisson_threads: int = 0
@@ -106,6 +111,14 @@ class LossConfig:
     """Residual penalty of the tangent loss: ``l1`` (official code) or ``l2`` (paper, Eq. 6)."""
     lambda_tangent: float = 1.0
     lambda_gs: float = 0.01
+    warm_start: int = 0
+    """Steps at the start that regress ``u(q)`` on ``‖q − t(q)‖`` (L1, static nearest surface point)
+    instead of the main loss, then the main loss takes over with the same optimiser and schedule;
+    0 = none (the reference). A short run starting from the initial sphere can leave a far part of
+    the bone without a zero set; this puts one near every part of the cloud first."""
+    gs_anchors: int = 0
+    """Anchors drawn at random (with replacement) for ``L_GS`` at each step; 0 = all anchors every
+    step (the reference). A subset is an unbiased estimate of the same loss at a fraction of the cost."""
     lambda_os: float = 0.0
     """On-surface term (Eq. 9); experiment E5 only."""
     lambda_eik: float = 0.0
@@ -122,6 +135,12 @@ class TrainConfig:
 
     iters: int = 30_000
     batch: int = 5_000
+    sampler: str = "strided"
+    """Batch draw: ``strided`` (the reference, §0.5) or ``epoch`` (consecutive batches of one
+    permutation of all stored queries per pass)."""
+    step: str = "optimised"
+    """``optimised`` (hand-written input gradient and fused Adam) or ``plain`` (autograd's double
+    backward and PyTorch's default Adam): the same losses and updates (tested to fp32 precision)."""
     lr: float = 1e-3
     warmup: int = 1_000
     """Linear warm-up iterations from lr = 0 (§0.6)."""

@@ -1,7 +1,8 @@
 """``reconstruct``: points (mm) → pre-processing → method → extraction → mesh (mm).
 
 This is the one place where the cloud is normalised (:class:`Normalizer` fitted on the voxelised
-cloud) and the one place where the mesh is mapped back to millimetres.
+cloud) and the one place where the mesh is mapped back to millimetres. Optional per-point probe
+positions (from a tracked sweep) follow the points through voxelisation and the same normalisation.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from .config import Config, apply_overrides, preset as make_preset
 from .errors import InputError
 from .extraction import extract_mesh, mesh_quality
 from .geometry.normalize import Normalizer
-from .geometry.voxel import voxel_downsample
+from .geometry.voxel import voxel_downsample, voxel_downsample_with
 from .io import save_json, save_mesh, validate_points
 from .methods import get_method
 from .progress import Progress
@@ -46,6 +47,8 @@ class Reconstruction:
     normalizer: Normalizer
     history: dict[str, list[float]] = field(default_factory=dict)
     input: dict[str, Any] = field(default_factory=dict)
+    method_info: dict[str, Any] = field(default_factory=dict)
+    """Choices the method resolved at run time (e.g. ``poisson_orientation``: ``tangent``/``probe``)."""
     version: str = __version__
 
     def sidecar(self) -> dict[str, Any]:
@@ -61,6 +64,7 @@ class Reconstruction:
             "seed": self.seed,
             "version": self.version,
             "input": self.input,
+            "method_info": self.method_info,
             "normalization": self.normalizer.to_dict(),
             "loss_history": self.history,
         }
@@ -96,7 +100,8 @@ def seed_everything(seed: int) -> None:
 def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.device = "auto",
                 seed: int = 42, method: str = "ultraboneudf", *, config: Config | None = None,
                 assignments: list[str] | tuple[str, ...] = (), progress: Progress | None = None,
-                quiet: bool = True, source: str = "points", **overrides: Any) -> Reconstruction:
+                quiet: bool = True, source: str = "points", probe_positions: Any = None,
+                **overrides: Any) -> Reconstruction:
     """Reconstruct a bone surface mesh from a point cloud in millimetres.
 
     Parameters
@@ -111,6 +116,12 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
     assignments, overrides : ``"section.key=value"`` strings and keyword overrides of the preset
         (``iters=1000``, ``extract__max_depth=8``).
     progress / quiet : a :class:`Progress` to report to, or ``quiet=False`` for a default one.
+    source : the name used in error messages (a file name).
+    probe_positions : optional (N, 3) array-like, mm in the same frame as ``points_mm``: row ``i`` is
+        the position of the probe that imaged point ``i`` (``CompoundedPoints.probe_position`` from
+        :func:`ultraboneudf.sweep.sweep_to_points`). Voxel-averaged with the points and normalised
+        with the same map. Used by methods that can (Poisson orients its normals toward the probe,
+        ``model.poisson_orientation``); ignored by the others.
     """
     t_start = time.perf_counter()
     progress = progress or Progress(quiet=quiet)
@@ -122,17 +133,24 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
     fit = entry.fit
     dev = resolve_device(device)
     points = validate_points(points_mm, source=source)
+    probe = _validate_probe(probe_positions, len(points), source)
     seed_everything(seed)
 
     t0 = time.perf_counter()
     if cfg.data.noise_sigma_mm > 0:
         points = points + np.random.default_rng(seed + 1).normal(0.0, cfg.data.noise_sigma_mm, points.shape)
-    voxelised = voxel_downsample(points, cfg.data.voxel_size_mm)
+    voxel_probe = None
+    if probe is None:
+        voxelised = voxel_downsample(points, cfg.data.voxel_size_mm)
+    else:  # each voxel's probe position: the mean of those of its points
+        voxelised, voxel_probe = voxel_downsample_with(points, probe, cfg.data.voxel_size_mm)
     normalizer = Normalizer.fit(voxelised)
     unit_points = normalizer.forward(voxelised)
+    unit_probe = None if voxel_probe is None else normalizer.forward(voxel_probe)
     voxel_s = time.perf_counter() - t0
 
-    fitted = fit(unit_points, cfg, dev, seed, progress)
+    extra = {"probe": unit_probe} if entry.takes_probe else {}
+    fitted = fit(unit_points, cfg, dev, seed, progress, **extra)
     t1 = time.perf_counter()
     if fitted.mesh is not None:
         unit_mesh = fitted.mesh
@@ -158,4 +176,20 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
     quality = mesh_quality(mesh) if mesh is not None else {}
     return Reconstruction(mesh=mesh, method=method, preset=preset if config is None else "custom",
                           config=cfg, timings=timings, counts=counts, quality=quality, device=str(dev), seed=seed,
-                          normalizer=normalizer, history=fitted.history)
+                          normalizer=normalizer, history=fitted.history, method_info=fitted.info)
+
+
+def _validate_probe(probe_positions: Any, n_points: int, source: str) -> np.ndarray | None:
+    """``probe_positions`` as an (N, 3) float64 array matching the N points, or ``None``."""
+    if probe_positions is None:
+        return None
+    try:
+        probe = np.asarray(probe_positions, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{source}: probe positions cannot be read as an array of numbers") from None
+    if probe.shape != (n_points, 3):
+        raise InputError(f"{source}: probe positions must be an N×3 array with one row per point "
+                         f"(N = {n_points}), got shape {probe.shape}")
+    if not np.isfinite(probe).all():
+        raise InputError(f"{source}: probe positions contain NaN or Inf")
+    return probe

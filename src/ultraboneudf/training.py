@@ -49,6 +49,39 @@ class StridedSampler:
         return 10 * j + r
 
 
+class EpochSampler:
+    """Consecutive batches of one random permutation of all ``total`` stored queries, redrawn when
+    used up: every query is seen once per pass, at the cost of one permutation per pass instead of
+    one per step (the ``fast`` preset's draw; the strided draw costs a permutation every step)."""
+
+    def __init__(self, total: int, batch: int, generator: torch.Generator, device: torch.device) -> None:
+        if total < 1:
+            raise ValueError("no stored queries to sample")
+        self.total, self.batch = total, min(batch, total)
+        self.generator, self.device = generator, device
+        self.order = torch.empty(0, dtype=torch.long, device=device)
+        self.pos = 0
+
+    def __call__(self) -> torch.Tensor:
+        if self.pos + self.batch > len(self.order):
+            self.order = torch.randperm(self.total, generator=self.generator, device=self.device)
+            self.pos = 0
+        rows = self.order[self.pos:self.pos + self.batch]
+        self.pos += self.batch
+        return rows
+
+
+SAMPLERS = {"strided": StridedSampler, "epoch": EpochSampler}
+
+
+def make_optimizer(params, device: torch.device, fused: bool) -> torch.optim.Adam:
+    """Adam with the reference hyper-parameters (§1.7). ``fused`` uses PyTorch's single-kernel
+    implementation where the device has one (CPU and CUDA): the same update, fewer operations."""
+    fused = fused and device.type in ("cpu", "cuda")
+    return torch.optim.Adam(params, lr=0.0, betas=(0.9, 0.999), eps=1e-8, weight_decay=0.0,
+                            **({"fused": True} if fused else {}))
+
+
 @dataclass
 class TrainingData:
     """Unit-space training samples on the training device."""
@@ -96,10 +129,17 @@ class LoopLog:
 
 
 def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: TrainingData,
-               cfg: LossConfig, nn_index: NearestIndex) -> dict[str, torch.Tensor]:
+               cfg: LossConfig, nn_index: NearestIndex, anchor_rows: torch.Tensor | None = None,
+               explicit: bool = True, warm: bool = False) -> dict[str, torch.Tensor]:
     """All active loss terms for one batch of queries ``q`` (K, 3) (rows ``batch`` of the store),
-    plus ``total``. Pure function of the network's current weights."""
-    u, g = value_and_grad(net, q, create_graph=True)
+    plus ``total``. Pure function of the network's current weights. ``anchor_rows``: the anchors
+    that enter ``L_GS`` (all when ``None``); ``explicit``: the hand-written input gradient
+    (:func:`value_and_grad`) instead of autograd's double backward; ``warm``: the warm-start term
+    ``mean |u(q) − ‖q − t(q)‖|`` (static nearest surface point ``t``) replaces the main loss."""
+    if warm:
+        terms = {"warm": (net(q) - (q - data.static_targets[batch]).norm(dim=1)).abs().mean()}
+        return _with_regularisers(net, data, cfg, terms, terms["warm"], None, anchor_rows, explicit)
+    u, g = value_and_grad(net, q, create_graph=True, explicit=explicit)
     g_hat = normalize(g)
     moved = q - u[:, None] * g_hat
     terms: dict[str, torch.Tensor] = {}
@@ -115,20 +155,31 @@ def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: Train
         total = terms["cd"]
     else:
         raise ValueError(f"unknown loss kind {cfg.kind!r}")
+    return _with_regularisers(net, data, cfg, terms, total, g, anchor_rows, explicit)
+
+
+def _with_regularisers(net: nn.Module, data: TrainingData, cfg: LossConfig, terms: dict[str, torch.Tensor],
+                       total: torch.Tensor, g: torch.Tensor | None, anchor_rows: torch.Tensor | None,
+                       explicit: bool) -> dict[str, torch.Tensor]:
+    """Add ``L_GS``, ``L_OS`` and ``L_Eik`` (their λ permitting) to ``total``; ``terms`` gets each and
+    ``total``. ``g``: the batch's input gradients, which ``L_Eik`` needs."""
     if cfg.lambda_gs and len(data.anchors):
-        terms["gs"] = global_shape_loss(net(data.anchors), data.anchor_targets)
+        if anchor_rows is None:
+            terms["gs"] = global_shape_loss(net(data.anchors), data.anchor_targets)
+        else:
+            terms["gs"] = global_shape_loss(net(data.anchors[anchor_rows]), data.anchor_targets[anchor_rows])
         total = total + cfg.lambda_gs * terms["gs"]
     if cfg.lambda_os or cfg.lambda_eik:
         need_grad = bool(cfg.lambda_eik)
         p = data.surface.detach().clone().requires_grad_(need_grad)
         if need_grad:
-            u_p, g_p = value_and_grad(net, p, create_graph=True)
+            u_p, g_p = value_and_grad(net, p, create_graph=True, explicit=explicit)
         else:
             u_p = net(p)
         if cfg.lambda_os:
             terms["os"] = on_surface_loss(u_p)
             total = total + cfg.lambda_os * terms["os"]
-        if cfg.lambda_eik:
+        if cfg.lambda_eik and g is not None:
             terms["eik"] = eikonal_loss(g_p, g)
             total = total + cfg.lambda_eik * terms["eik"]
     terms["total"] = total
@@ -140,15 +191,32 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
           expand: Callable[[nn.Module, TrainingData], torch.Tensor] | None = None) -> TrainResult:
     """Optimise ``net`` in place on ``data`` for ``train_cfg.iters`` iterations (Adam, §1.7).
 
+    ``train_cfg.step``: ``optimised`` (hand-written input gradient, fused Adam) or ``plain``
+    (autograd double backward, PyTorch's default Adam); both compute the same losses and updates.
+    ``train_cfg.sampler`` picks the batch draw (:data:`SAMPLERS`); ``loss_cfg.gs_anchors > 0``
+    evaluates ``L_GS`` on that many anchors drawn at random each step instead of all of them;
+    the first ``loss_cfg.warm_start`` steps regress ``u`` on the static distance to ``P`` instead of
+    the main loss (needs ``data.static_targets``).
+
     ``expand`` (CAP-UDF's progressive expansion, §3.4): called once after ``train_cfg.expand_at``
     completed steps with the network and the data; it returns the new static targets (T, 3), and the
     batch becomes ``train_cfg.expand_batch``. The optimiser state and the schedule carry over."""
     device = data.queries.device
     generator = torch.Generator(device=device).manual_seed(seed)
-    sampler = StridedSampler(len(data.queries), train_cfg.batch, generator, device)
+    if train_cfg.sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {train_cfg.sampler!r}; choose one of {', '.join(SAMPLERS)}")
+    if train_cfg.step not in ("optimised", "plain"):
+        raise ValueError(f"unknown training step {train_cfg.step!r}; choose optimised or plain")
+    make_sampler = SAMPLERS[train_cfg.sampler]
+    sampler = make_sampler(len(data.queries), train_cfg.batch, generator, device)
     nn_index = NearestIndex(data.surface)
-    opt = torch.optim.Adam(net.parameters(), lr=0.0, betas=(0.9, 0.999), eps=1e-8, weight_decay=0.0)
+    explicit = train_cfg.step == "optimised"
+    opt = make_optimizer(net.parameters(), device, fused=explicit)
+    n_anchors = len(data.anchors)
+    gs_rows = loss_cfg.gs_anchors if 0 < loss_cfg.gs_anchors < n_anchors else 0
     iters = train_cfg.iters
+    if loss_cfg.warm_start > 0 and data.static_targets is None:
+        raise ValueError("loss.warm_start needs the static targets t(q) in the training data")
     net.train()
     with progress.stage("training", iters) as advance:
         log = LoopLog(iters, advance, device, log_every)
@@ -157,12 +225,15 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
                 net.eval()
                 data.static_targets = expand(net, data)
                 net.train()
-                sampler = StridedSampler(len(data.queries), train_cfg.expand_batch, generator, device)
+                sampler = make_sampler(len(data.queries), train_cfg.expand_batch, generator, device)
             for group in opt.param_groups:
                 group["lr"] = learning_rate(i, train_cfg.lr, train_cfg.warmup, iters)
             batch = sampler()
             opt.zero_grad(set_to_none=True)
-            terms = loss_terms(net, data.queries[batch], batch, data, loss_cfg, nn_index)
+            anchor_rows = (torch.randint(0, n_anchors, (gs_rows,), generator=generator, device=device)
+                           if gs_rows else None)
+            terms = loss_terms(net, data.queries[batch], batch, data, loss_cfg, nn_index, anchor_rows,
+                               explicit, warm=i < loss_cfg.warm_start)
             terms["total"].backward()
             opt.step()
             log.step(i, terms)

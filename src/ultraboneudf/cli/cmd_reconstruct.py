@@ -39,22 +39,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def read_input(path: Path, progress: Progress) -> np.ndarray:
-    """Points (mm) from a cloud file, or compounded from a sweep (a folder or a sequence file)."""
-    from ..sweep import is_sweep_path, points_from_sweep
+def read_input(path: Path, progress: Progress) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (mm) from a cloud file, or compounded from a sweep (a folder or a sequence file), and
+    for a sweep the probe position of each point (mm, same frame; ``None`` for a cloud file)."""
+    from ..sweep import is_sweep_path, sweep_to_points
 
     if path.exists() and is_sweep_path(path):
-        return points_from_sweep(path, progress=progress)
-    return load_points(path)
+        cp = sweep_to_points(path, progress=progress)
+        return cp.points, cp.probe_position
+    return load_points(path), None
 
 
 def run(args: argparse.Namespace) -> int:
     output = check_mesh_path(args.output)
     progress = Progress(quiet=args.quiet)
-    points = read_input(args.input, progress)
+    points, probe = read_input(args.input, progress)
     overrides = {} if args.iters is None else {"train.iters": args.iters}
     rec = reconstruct(points, preset=args.preset, device=args.device, seed=args.seed, method=args.method,
-                      assignments=args.assignments, progress=progress, source=str(args.input), **overrides)
+                      assignments=args.assignments, progress=progress, source=str(args.input),
+                      probe_positions=probe, **overrides)
     if rec.mesh is None:
         print(f"ultraboneudf reconstruct: no surface was found in {args.input}; nothing written "
               "(see the loss history with --set train.iters=… or try another preset)", file=sys.stderr)

@@ -83,15 +83,59 @@ class DistanceMLP(nn.Module):
         out = h.squeeze(-1)
         return out.abs() if self.abs_output else out
 
+    def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``u(x)`` (M,) and ``∇u(x)`` (M, 3) from one forward sweep and a hand-written backward
+        sweep of the ReLU network: ``∇u = s·w_Lᵀ D_{L−1} W_{L−1} ⋯ D_1 W_1`` with the ReLU masks
+        ``D`` and the output sign ``s``. Built from ordinary tensor operations, so the result is
+        differentiable in the weights (for losses on ∇u) at first order: cheaper than autograd's
+        double backward, which differentiates through the backward graph of the forward pass.
+        Equal to autograd's input gradient, including its conventions ``relu'(0) = 0`` and
+        ``|·|'(0) = 0``."""
+        weights = [layer.weight() for layer in self.layers]
+        h, acts = x, []
+        root2 = math.sqrt(2.0)
+        last = len(self.layers) - 1
+        for i, (layer, w) in enumerate(zip(self.layers, weights)):
+            if i in self.skip:
+                h = torch.cat([h, x], dim=-1) / root2
+            z = torch.addmm(layer.bias, h, w.T)
+            if i < last:
+                h = torch.relu(z)
+                acts.append(h)
+        z = z.squeeze(-1)
+        u = z.abs() if self.abs_output else z
+        d = z.sign()[:, None] if self.abs_output else torch.ones_like(z)[:, None]  # du/dz_last
+        grad_x = None
+        for i in range(last, -1, -1):
+            if i < last:
+                # du/dz_i: zero where the ReLU is off; autograd's own op for this, differentiable
+                # in d and free of a mask tensor and its dtype conversion
+                d = torch.ops.aten.threshold_backward(d, acts[i], 0.0)
+            d = d @ weights[i]                    # du/d(input of layer i)
+            if i in self.skip:
+                # the input was [h, x]/√2: split the gradient between the two parts
+                d, dx = d[:, :-x.shape[1]] / root2, d[:, -x.shape[1]:] / root2
+                grad_x = dx if grad_x is None else grad_x + dx
+        grad_x = d if grad_x is None else grad_x + d
+        return u, grad_x
+
 
 def count_parameters(module: nn.Module) -> int:
     """Number of trainable scalars (weight-norm magnitudes included)."""
     return sum(p.numel() for p in module.parameters() if p.requires_grad)
 
 
-def value_and_grad(net: nn.Module, x: torch.Tensor, create_graph: bool) -> tuple[torch.Tensor, torch.Tensor]:
-    """``u(x)`` (M,) and ``∇u(x)`` (M, 3) from one forward pass; with ``create_graph`` the gradient is
-    differentiable (needed by losses that depend on ∇u)."""
+def value_and_grad(net: nn.Module, x: torch.Tensor, create_graph: bool,
+                   explicit: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """``u(x)`` (M,) and ``∇u(x)`` (M, 3); with ``create_graph`` the gradient is differentiable
+    (needed by losses that depend on ∇u). A :class:`DistanceMLP` uses its hand-written backward
+    sweep (:meth:`DistanceMLP.value_and_grad`) unless ``explicit`` is false; other networks, and
+    ``explicit=False``, use autograd."""
+    if explicit and isinstance(net, DistanceMLP):
+        if create_graph:
+            return net.value_and_grad(x)
+        with torch.no_grad():
+            return net.value_and_grad(x)
     if not x.requires_grad:
         x = x.requires_grad_(True)
     u = net(x)
@@ -112,6 +156,6 @@ class MLPField(Field):
         return self.net(x)
 
     def _value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        with torch.enable_grad():
+        with torch.enable_grad():  # autograd is needed by networks other than DistanceMLP
             u, g = value_and_grad(self.net, x.detach().clone(), create_graph=False)
         return u.detach(), g.detach()

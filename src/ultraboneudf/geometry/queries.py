@@ -10,6 +10,26 @@ from .fps import farthest_point_sampling
 from .neighbors import knn_distance
 
 
+def surface_subset_index(points: np.ndarray, rule: str, threshold: int, fps_sizes: tuple[int, ...],
+                         max_points: int, device: str = "cpu") -> np.ndarray | None:
+    """Row indices into ``points`` of the surface rows ``P`` of :func:`surface_subset` (in ``P``'s
+    order, duplicates kept), or ``None`` when ``P`` is every point in its own order. Lets per-point
+    data (e.g. probe positions) follow the subset."""
+    if rule == "all":
+        return None
+    if rule == "official":
+        if len(points) <= threshold:
+            return None
+        # FPS from a fixed start is prefix-consistent: one run to the largest size serves all.
+        order = farthest_point_sampling(points, max(fps_sizes), device=device)
+        return np.concatenate([order[:size] for size in fps_sizes])
+    if rule == "fps":
+        if len(points) <= max_points:
+            return None
+        return farthest_point_sampling(points, max_points, device=device)
+    raise ValueError(f"unknown surface subset rule {rule!r}")
+
+
 def surface_subset(points: np.ndarray, rule: str, threshold: int, fps_sizes: tuple[int, ...],
                    max_points: int, device: str = "cpu") -> np.ndarray:
     """The surface rows ``P`` (unit space) used for training.
@@ -18,19 +38,8 @@ def surface_subset(points: np.ndarray, rule: str, threshold: int, fps_sizes: tup
     concatenate, keeping the duplicates (5k ∪ 15k → 20,000 rows, 15,000 distinct); else all points.
     ``fps``: FPS to ``max_points`` distinct points (all if fewer). ``all``: every point.
     """
-    if rule == "all":
-        return points
-    if rule == "official":
-        if len(points) <= threshold:
-            return points
-        # FPS from a fixed start is prefix-consistent: one run to the largest size serves all.
-        order = farthest_point_sampling(points, max(fps_sizes), device=device)
-        return np.concatenate([points[order[:size]] for size in fps_sizes])
-    if rule == "fps":
-        if len(points) <= max_points:
-            return points
-        return points[farthest_point_sampling(points, max_points, device=device)]
-    raise ValueError(f"unknown surface subset rule {rule!r}")
+    index = surface_subset_index(points, rule, threshold, fps_sizes, max_points, device)
+    return points if index is None else points[index]
 
 
 def gaussian_queries(surface: np.ndarray, sigma: np.ndarray, per_point: int,

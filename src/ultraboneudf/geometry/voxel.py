@@ -5,6 +5,28 @@ from __future__ import annotations
 import numpy as np
 
 
+def _voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """Voxel id ``(N,)`` of every point (ids numbered in lexicographic voxel-index order) and the
+    number of points ``(M,)`` of each occupied voxel."""
+    origin = points.min(axis=0) - voxel / 2.0
+    idx = np.floor((points - origin) / voxel).astype(np.int64)
+    dims = idx.max(axis=0) + 1
+    # Row-major packing keeps lexicographic order; fall back to a row-wise unique if it would overflow.
+    if np.prod(dims.astype(np.float64)) < 2**62:
+        keys = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
+        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    else:
+        _, inverse, counts = np.unique(idx, axis=0, return_inverse=True, return_counts=True)
+    return inverse.reshape(-1), counts
+
+
+def _group_mean(values: np.ndarray, inverse: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Per-voxel mean ``(M, K)`` of the rows of ``values`` ``(N, K)``."""
+    sums = np.stack([np.bincount(inverse, weights=values[:, k], minlength=len(counts))
+                     for k in range(values.shape[1])], axis=1)
+    return sums / counts[:, None]
+
+
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     """Mean of the points in each occupied voxel of edge ``voxel`` (same unit as ``points``).
 
@@ -16,16 +38,21 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64)
     if voxel <= 0:
         return points.copy()
-    origin = points.min(axis=0) - voxel / 2.0
-    idx = np.floor((points - origin) / voxel).astype(np.int64)
-    dims = idx.max(axis=0) + 1
-    # Row-major packing keeps lexicographic order; fall back to a row-wise unique if it would overflow.
-    if np.prod(dims.astype(np.float64)) < 2**62:
-        keys = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
-        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    else:
-        _, inverse, counts = np.unique(idx, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    sums = np.stack([np.bincount(inverse, weights=points[:, k], minlength=len(counts))
-                     for k in range(3)], axis=1)
-    return sums / counts[:, None]
+    inverse, counts = _voxel_groups(points, voxel)
+    return _group_mean(points, inverse, counts)
+
+
+def voxel_downsample_with(points: np.ndarray, attributes: np.ndarray, voxel: float
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`voxel_downsample` that carries per-point ``attributes`` ``(N, K)`` along: each output
+    row gets the mean attribute of the points averaged into it (e.g. the probe position of a sweep
+    point → the mean probe position of the points in its voxel). Returns ``(M, 3)`` points, rows
+    identical to :func:`voxel_downsample`, and ``(M, K)`` float64 attributes."""
+    points = np.asarray(points, dtype=np.float64)
+    attributes = np.asarray(attributes, dtype=np.float64)
+    if attributes.ndim != 2 or len(attributes) != len(points):
+        raise ValueError(f"attributes must be (N, K) with N = {len(points)} rows, got {attributes.shape}")
+    if voxel <= 0:
+        return points.copy(), attributes.copy()
+    inverse, counts = _voxel_groups(points, voxel)
+    return _group_mean(points, inverse, counts), _group_mean(attributes, inverse, counts)

@@ -4,6 +4,10 @@ A method is ``fit(points, config, device, seed, progress) -> Fitted`` where ``po
 pre-processed cloud in *unit space* (``(N, 3)`` float64, see :class:`~ultraboneudf.geometry.Normalizer`).
 It returns a field for the extractor, or a unit-space mesh directly (e.g. Poisson).
 
+A method whose registry entry has ``takes_probe=True`` also accepts ``probe=`` (``(N, 3)`` unit
+space, row ``i`` the probe position of ``points[i]``, or ``None``): per-point provenance from a
+tracked sweep (§7.2 alternative B). Other methods never receive it.
+
 The registry (:data:`ultraboneudf.methods.METHODS`) holds one :class:`Method` per name: its ``fit``
 and a ``configure(cfg, preset)`` that sets the method's own defaults (network, loss, schedule,
 extractor) on a fresh preset config *before* the user's overrides are applied.
@@ -13,7 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from dataclasses import field as dc_field
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -37,6 +41,8 @@ class Fitted:
     """Unit-space surface points (N, 3) for extractors that need them (CAP-UDF box, UDF→SDF signs)."""
     normals: np.ndarray | None = None
     """Oriented unit normals (N, 3) of ``surface`` (CarotidUDF ``normal-sign`` conversion)."""
+    info: dict[str, Any] = dc_field(default_factory=dict)
+    """Choices the method resolved at run time (e.g. ``poisson_orientation``), for the sidecar."""
 
 
 FitFunction = Callable[[np.ndarray, Config, torch.device, int, Progress], Fitted]
@@ -49,8 +55,10 @@ def keep_preset(cfg: Config, preset: str) -> None:
 
 @dataclass(frozen=True)
 class Method:
-    """A registry entry: ``fit`` and ``configure(cfg, preset_name)`` (method defaults, in place)."""
+    """A registry entry: ``fit`` and ``configure(cfg, preset_name)`` (method defaults, in place).
+    ``takes_probe``: ``fit`` accepts per-point probe positions as ``probe=`` (see the module doc)."""
 
     fit: FitFunction
     configure: ConfigureFunction = keep_preset
     summary: str = ""
+    takes_probe: bool = False

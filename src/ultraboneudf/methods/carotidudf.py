@@ -22,10 +22,10 @@ import torch
 
 from ..config import Config
 from ..fields.mlp import MLPField, count_parameters
+from ..geometry.normals import ultraboneudf_normals
 from ..progress import QUIET, Progress
 from ..training import train
 from .base import Fitted
-from .normals import ultraboneudf_normals
 from .ultraboneudf import build_network, prepare
 
 

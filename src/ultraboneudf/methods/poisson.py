@@ -1,6 +1,10 @@
 """Screened Poisson surface reconstruction (§7): depth 9 on the pre-processed cloud with the
 UltraBoneUDF normal recipe (§7.2), no density trimming.
 
+Normal orientation (``model.poisson_orientation``): tangent-plane propagation (the default recipe),
+or, when the input carries per-point probe positions (a sweep), each normal turned toward the probe
+that imaged its point (§7.2 alternative B), which stays consistent across gaps between slices.
+
 The solver comes from an optional extra (``pip install 'ultraboneudf[poisson]'``); it is imported
 only when the method runs. Backends: ``pymeshlab`` (the extra's choice: one wheel, NumPy its only
 dependency) and ``open3d`` (the paper's library; a heavier install). ``model.poisson_backend=auto``
@@ -17,12 +21,13 @@ import trimesh
 
 from ..config import Config
 from ..errors import InputError
-from ..geometry.queries import surface_subset
+from ..geometry.normals import orient_tangent_plane, orient_toward, pca_normals
+from ..geometry.queries import surface_subset_index
 from ..progress import QUIET, Progress
 from .base import Fitted
-from .normals import orient_tangent_plane, pca_normals
 
 BACKENDS = ("pymeshlab", "open3d")
+ORIENTATIONS = ("auto", "tangent", "probe")
 INSTALL_HINT = ("the poisson method needs a screened-Poisson library: pip install 'ultraboneudf[poisson]' "
                 "(installs pymeshlab), or pip install open3d and --set model.poisson_backend=open3d")
 
@@ -32,16 +37,34 @@ def configure(cfg: Config, preset: str) -> None:
     cfg.train.iters = 0
 
 
-def estimate_normals(surface: np.ndarray, cloud: np.ndarray, rule: str) -> np.ndarray:
+def resolve_orientation(name: str, has_probe: bool) -> str:
+    """The orientation for ``model.poisson_orientation``: ``tangent`` or ``probe`` (``auto`` →
+    ``probe`` when probe positions are present, else ``tangent``). Raises :class:`InputError` for an
+    unknown choice, or for ``probe`` without probe positions."""
+    if name not in ORIENTATIONS:
+        raise InputError(f"unknown model.poisson_orientation {name!r}; choose {', '.join(ORIENTATIONS)}")
+    if name == "auto":
+        return "probe" if has_probe else "tangent"
+    if name == "probe" and not has_probe:
+        raise InputError("model.poisson_orientation=probe needs per-point probe positions: reconstruct a "
+                         "tracked sweep, or pass probe_positions= to reconstruct()")
+    return name
+
+
+def estimate_normals(surface: np.ndarray, cloud: np.ndarray, rule: str,
+                     viewpoints: np.ndarray | None = None) -> np.ndarray:
     """Oriented normals of ``surface`` (§7.2): ``ultraboneudf`` (PCA radius 0.5 ≤ 1,000 neighbours
-    on ``cloud``, tangent-plane orientation with 15 neighbours) or ``knn30`` (PCA over the 30 nearest
-    points, same orientation)."""
+    on ``cloud``) or ``knn30`` (PCA over the 30 nearest points), then oriented by tangent-plane
+    propagation with 15 neighbours, or, given ``viewpoints`` (N, 3) (the probe position of each
+    surface row), each turned toward its viewpoint (alternative B)."""
     if rule == "ultraboneudf":
         raw = pca_normals(surface, cloud, radius=0.5, max_nn=1_000)
     elif rule == "knn30":
         raw = pca_normals(surface, cloud, radius=np.inf, max_nn=30)
     else:
         raise InputError(f"unknown model.poisson_normals {rule!r}; choose ultraboneudf or knn30")
+    if viewpoints is not None:
+        return orient_toward(surface, raw, viewpoints)
     return orient_tangent_plane(surface, raw, 15)
 
 
@@ -107,18 +130,25 @@ def screened_poisson(points: np.ndarray, normals: np.ndarray, depth: int = 9, sc
 
 
 def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
-        progress: Progress = QUIET) -> Fitted:
+        progress: Progress = QUIET, *, probe: np.ndarray | None = None) -> Fitted:
     """Poisson on the preset's surface subset of the unit-space cloud (scale-invariant, §7.3);
-    returns a unit-space mesh."""
+    returns a unit-space mesh. ``probe`` (N, 3), unit space: the probe position of each row of
+    ``points``, used by the ``probe`` orientation."""
+    orientation = resolve_orientation(cfg.model.poisson_orientation, probe is not None)
     backend = resolve_backend(cfg.model.poisson_backend)  # fail before any work when missing
+    if probe is not None and np.shape(probe) != np.shape(points):
+        raise InputError(f"probe positions have shape {np.shape(probe)}, expected {np.shape(points)} "
+                         f"(one per point)")
     d = cfg.data
     t0 = time.perf_counter()
     with progress.stage("normals", 1) as advance:
-        surface = surface_subset(points, d.subset, d.subset_threshold, d.fps_sizes, d.max_points,
-                                 device=str(device))
+        rows = surface_subset_index(points, d.subset, d.subset_threshold, d.fps_sizes, d.max_points,
+                                    device=str(device))
+        rows = np.arange(len(points)) if rows is None else rows
         # duplicated FPS rows (official subset) would only double-weight points in the solver
-        surface = np.unique(surface, axis=0)
-        normals = estimate_normals(surface, points, cfg.model.poisson_normals)
+        surface, first = np.unique(points[rows], axis=0, return_index=True)
+        viewpoints = probe[rows[first]] if orientation == "probe" else None
+        normals = estimate_normals(surface, points, cfg.model.poisson_normals, viewpoints)
         advance()
     prep_s = time.perf_counter() - t0
     t1 = time.perf_counter()
@@ -128,4 +158,5 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
         advance()
     return Fitted(mesh=mesh, counts={"surface_points": len(surface), "queries": 0, "parameters": 0},
                   timings={"preprocess_s": prep_s, "train_s": time.perf_counter() - t1},
-                  surface=surface, normals=normals)
+                  surface=surface, normals=normals,
+                  info={"poisson_orientation": orientation, "poisson_backend": backend})

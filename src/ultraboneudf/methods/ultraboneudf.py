@@ -27,7 +27,7 @@ def prepare(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     compute ``t(q)`` (default: when the loss needs it, kinds ``pull`` and ``capudf``).
     """
     if static_targets is None:
-        static_targets = cfg.loss.kind in ("pull", "capudf")
+        static_targets = cfg.loss.kind in ("pull", "capudf") or cfg.loss.warm_start > 0
     d = cfg.data
     rng = np.random.default_rng(seed)
     with progress.stage("sampling", 4) as advance:

@@ -1,8 +1,8 @@
 """Sweep → bone point cloud in one call: read, segment, compound, clean.
 
 :func:`sweep_to_points` returns the points with their provenance (frame index, probe position,
-beam direction); :func:`points_from_sweep` returns only the ``(N, 3)`` mm array, for
-``reconstruct SWEEP``.
+beam direction; ``reconstruct SWEEP`` passes the probe positions on, see
+:func:`ultraboneudf.reconstruct`); :func:`points_from_sweep` returns only the ``(N, 3)`` mm array.
 """
 
 from __future__ import annotations

@@ -2,7 +2,9 @@
 sweep-based orientation toward the probe (§1.2 steps 4 and 6, §5.4, §7.2).
 
 These are the UltraBoneUDF reference pipeline's normals (computed there but unused by its loss):
-CarotidUDF's ``normal-sign`` conversion and Poisson need them. All inputs are unit-space arrays.
+CarotidUDF's ``normal-sign`` conversion and Poisson need them. All inputs are unit-space arrays
+(``orient_toward`` is invariant under the positive scaling of §0.1, provided points and viewpoints
+went through the same map).
 """
 
 from __future__ import annotations

@@ -1,0 +1,87 @@
+"""The optimised training step (hand-written input gradient, fused Adam) against the plain one
+(autograd double backward, default Adam), and the cheap batch draws of the ``fast`` preset."""
+
+import numpy as np
+import pytest
+import torch
+
+from ultraboneudf.config import preset
+from ultraboneudf.fields.mlp import DistanceMLP, value_and_grad
+from ultraboneudf.geometry.queries import anchors, gaussian_queries, grid_queries, query_spread
+from ultraboneudf.training import EpochSampler, TrainingData, train
+
+
+@pytest.mark.parametrize("skip,abs_output", [((), True), ((2,), True), ((3,), False), ((3,), True)])
+def test_explicit_input_gradient_equals_autograd_to_second_order(skip, abs_output):
+    net = DistanceMLP((32, 64, 64), skip=skip, abs_output=abs_output,
+                      generator=torch.Generator().manual_seed(0)).double()
+    x = torch.randn(300, 3, dtype=torch.float64) * 0.5
+    u1, g1 = value_and_grad(net, x.clone(), create_graph=True, explicit=False)
+    u2, g2 = value_and_grad(net, x.clone(), create_graph=True, explicit=True)
+    torch.testing.assert_close(u2, u1, rtol=0, atol=1e-14)
+    torch.testing.assert_close(g2, g1, rtol=0, atol=1e-13)
+    # a loss of the gradient differentiated in the weights: the double-backward path of training
+    p1 = torch.autograd.grad((g1.square().sum(1) - 1).abs().mean() + u1.mean(), list(net.parameters()))
+    p2 = torch.autograd.grad((g2.square().sum(1) - 1).abs().mean() + u2.mean(), list(net.parameters()))
+    for a, b in zip(p1, p2):
+        torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-12)
+
+
+def test_explicit_gradient_without_graph_is_detached():
+    net = DistanceMLP((16, 16), generator=torch.Generator().manual_seed(1))
+    u, g = value_and_grad(net, torch.randn(10, 3), create_graph=False)
+    assert not u.requires_grad and not g.requires_grad and g.shape == (10, 3)
+
+
+def _plane_data(seed=0):
+    """A 40×40 patch of the plane z = 0.1 in unit space with the preset's query recipe."""
+    rng = np.random.default_rng(seed)
+    surface = np.c_[rng.uniform(-0.5, 0.5, (1600, 2)), np.full(1600, 0.1)]
+    sigma = query_spread(surface, 50)
+    queries = np.concatenate([gaussian_queries(surface, sigma, 20, rng), grid_queries(2000, rng)])
+    a, t = anchors(surface, "official", 10, True, 0.1)
+    f = lambda v: torch.as_tensor(v, dtype=torch.float32)  # noqa: E731
+    return TrainingData(surface=f(surface), queries=f(queries), anchors=f(a), anchor_targets=f(t))
+
+
+@pytest.mark.parametrize("tangent_norm", ["l1", "l2"])
+def test_optimised_and_plain_steps_give_the_same_losses_for_50_iterations(tangent_norm):
+    data = _plane_data()
+    histories = {}
+    for step in ("plain", "optimised"):
+        cfg = preset("official")
+        cfg.loss.tangent_norm = tangent_norm
+        cfg.train.iters, cfg.train.batch, cfg.train.warmup, cfg.train.step = 50, 500, 5, step
+        net = DistanceMLP((64, 128, 128), generator=torch.Generator().manual_seed(4))
+        histories[step] = train(net, data, cfg.loss, cfg.train, seed=7, log_every=1).history
+    plain, opt = histories["plain"], histories["optimised"]
+    assert len(plain["total"]) == 50
+    # fp32: the two steps differ only in summation order (fused vs. foreach Adam, mm vs. autograd's mm)
+    np.testing.assert_allclose(opt["total"], plain["total"], rtol=2e-4, atol=1e-7)
+    np.testing.assert_allclose(opt["gs"], plain["gs"], rtol=2e-4, atol=1e-7)
+    assert opt["total"][-1] < 0.5 * opt["total"][0]   # and it trains
+
+
+def test_epoch_sampler_sees_every_query_once_per_pass():
+    s = EpochSampler(1000, 300, torch.Generator().manual_seed(0), torch.device("cpu"))
+    first = torch.cat([s() for _ in range(3)])          # 900 of the first permutation
+    assert len(torch.unique(first)) == 900
+    fourth = s()                                         # 100 left < 300: a new permutation
+    assert len(fourth) == 300 and len(torch.unique(fourth)) == 300
+    assert int(first.max()) < 1000 and int(fourth.max()) < 1000
+
+
+def test_anchor_subset_and_unknown_choices():
+    data = _plane_data()
+    cfg = preset("fast")
+    cfg.train.iters, cfg.train.batch, cfg.train.warmup = 20, 200, 2
+    cfg.loss.gs_anchors = 16
+    net = DistanceMLP((32, 32), generator=torch.Generator().manual_seed(0))
+    hist = train(net, data, cfg.loss, cfg.train, seed=0, log_every=1).history
+    assert len(hist["gs"]) == 20 and all(np.isfinite(hist["gs"]))
+    cfg.train.sampler = "shuffled"
+    with pytest.raises(ValueError, match="unknown sampler"):
+        train(net, data, cfg.loss, cfg.train, seed=0)
+    cfg.train.sampler, cfg.train.step = "epoch", "compiled"
+    with pytest.raises(ValueError, match="unknown training step"):
+        train(net, data, cfg.loss, cfg.train, seed=0)
