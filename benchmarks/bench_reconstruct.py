@@ -20,6 +20,7 @@ import os
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -71,9 +72,12 @@ def run_one(args: argparse.Namespace) -> dict:
         res = evaluate(rec.mesh, truth, samples=args.samples, seed=0)
         row.update(cd_mm=round(res.cd_mm, 4), hd95_mm=round(res.hd95_mm, 4),
                    area_ratio=round(float(rec.mesh.area / truth.area), 3))
-        if args.save:
-            Path(args.save).parent.mkdir(parents=True, exist_ok=True)
-            rec.save(args.save)
+        with tempfile.TemporaryDirectory() as tmp:
+            target = Path(args.save) if args.save else Path(tmp) / "mesh.ply"
+            target.parent.mkdir(parents=True, exist_ok=True)
+            t1 = time.perf_counter()
+            rec.save(target)
+            row["write_s"] = round(time.perf_counter() - t1, 3)
     return row
 
 
@@ -84,6 +88,15 @@ def print_table(rows: list[dict]) -> None:
     print("|" + "---|" * len(cols))
     for r in rows:
         print("| " + " | ".join("" if r.get(c) is None else str(r.get(c)) for c in cols) + " |")
+    # per-stage profile: the pipeline's own steps, in the order they run
+    stages = ["voxel_s", "subset_s", "sigma_s", "queries_s", "anchors_s", "static_nn_s", "train_s",
+              "extract_s", "write_s"]
+    print()
+    print("| preset | device | " + " | ".join(stages) + " |")
+    print("|" + "---|" * (len(stages) + 2))
+    for r in rows:
+        print(f"| {r['preset']} | {r['device']} | " + " | ".join(str(r.get(c, "")) for c in stages) + " |")
+    print()
     base = {r["device"]: r for r in rows if r["preset"] == "official" and r.get("total_s")}
     for r in rows:
         ref = base.get(r["device"])

@@ -75,7 +75,7 @@ def test_anchor_subset_and_unknown_choices():
     data = _plane_data()
     cfg = preset("fast")
     cfg.train.iters, cfg.train.batch, cfg.train.warmup = 20, 200, 2
-    cfg.loss.gs_anchors = 16
+    cfg.loss.gs_anchors, cfg.loss.warm_start, cfg.loss.lambda_far = 16, 0.0, 0.0
     net = DistanceMLP((32, 32), generator=torch.Generator().manual_seed(0))
     hist = train(net, data, cfg.loss, cfg.train, seed=0, log_every=1).history
     assert len(hist["gs"]) == 20 and all(np.isfinite(hist["gs"]))
@@ -85,3 +85,43 @@ def test_anchor_subset_and_unknown_choices():
     cfg.train.sampler, cfg.train.step = "epoch", "compiled"
     with pytest.raises(ValueError, match="unknown training step"):
         train(net, data, cfg.loss, cfg.train, seed=0)
+
+
+def test_warm_start_regresses_the_static_distance_first():
+    data = _plane_data()
+    cfg = preset("fast")
+    cfg.train.iters, cfg.train.batch, cfg.train.warmup, cfg.train.lr = 200, 250, 10, 5e-3
+    cfg.loss.warm_start, cfg.loss.lambda_far = 0.5, 0.0
+    net = DistanceMLP((32, 32), generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match="static targets"):
+        train(net, data, cfg.loss, cfg.train, seed=0)
+    from ultraboneudf.geometry.neighbors import NearestIndex
+    data.static_targets = data.surface[NearestIndex(data.surface).query(data.queries)]
+    hist = train(net, data, cfg.loss, cfg.train, seed=0, log_every=1).history
+    assert len(hist["warm"]) == 100 and len(hist["tangent"]) == 100
+    assert hist["warm"][-1] < 0.5 * hist["warm"][0]
+    # after the warm start the field vanishes on the plane and grows off it like the distance
+    x = torch.tensor([[0.0, 0.0, 0.1], [0.2, -0.1, 0.1], [0.0, 0.0, 0.25], [0.1, 0.1, -0.05]])
+    u = net(x).detach()
+    assert float(u[:2].max()) < 0.03 and abs(float(u[2]) - 0.15) < 0.05 and abs(float(u[3]) - 0.15) < 0.05
+
+
+def test_far_term_is_the_static_distance_error_beyond_the_threshold():
+    from ultraboneudf.geometry.neighbors import NearestIndex
+    from ultraboneudf.training import loss_terms
+
+    data = _plane_data()
+    index = NearestIndex(data.surface)
+    data.static_targets = data.surface[index.query(data.queries)]
+    cfg = preset("fast").loss
+    cfg.lambda_far, cfg.far_threshold, cfg.lambda_gs = 2.0, 0.05, 0.0
+    net = DistanceMLP((16, 16), generator=torch.Generator().manual_seed(2))
+    batch = torch.arange(0, 4000, 7)
+    q = data.queries[batch]
+    terms = loss_terms(net, q, batch, data, cfg, index)
+    d = (q - data.static_targets[batch]).norm(dim=1)
+    far = d > 0.05
+    assert 0 < int(far.sum()) < len(q)
+    expected = ((net(q) - d).abs() * far).sum() / len(q)
+    torch.testing.assert_close(terms["far"], expected.detach(), rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(terms["total"], terms["tangent"] + 2.0 * terms["far"])

@@ -168,6 +168,9 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
         "preprocess_s": voxel_s + fitted.timings.get("preprocess_s", 0.0),
         "train_s": fitted.timings.get("train_s", 0.0),
         "extract_s": extract_s,
+        "voxel_s": voxel_s,
+        # the method's own pre-processing steps (e.g. subset_s, sigma_s, static_nn_s)
+        **{k: v for k, v in fitted.timings.items() if k not in ("preprocess_s", "train_s")},
     }
     timings["total_s"] = time.perf_counter() - t_start
     counts = {"input_points": len(points), "voxelized_points": len(voxelised), **fitted.counts,

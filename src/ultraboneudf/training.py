@@ -147,6 +147,10 @@ def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: Train
         foot = data.surface[nn_index.query(moved).to(data.surface.device)]
         terms["tangent"] = tangent_loss(tangent_residual(q, u, g_hat, foot), cfg.tangent_norm)
         total = cfg.lambda_tangent * terms["tangent"]
+        if cfg.lambda_far:
+            d = (q - data.static_targets[batch]).norm(dim=1)
+            terms["far"] = ((u - d).abs() * (d > cfg.far_threshold)).mean()
+            total = total + cfg.lambda_far * terms["far"]
     elif cfg.kind == "pull":
         terms["pull"] = pull_loss(moved, data.static_targets[batch], cfg.pull_norm)
         total = terms["pull"]
@@ -195,8 +199,8 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     (autograd double backward, PyTorch's default Adam); both compute the same losses and updates.
     ``train_cfg.sampler`` picks the batch draw (:data:`SAMPLERS`); ``loss_cfg.gs_anchors > 0``
     evaluates ``L_GS`` on that many anchors drawn at random each step instead of all of them;
-    the first ``loss_cfg.warm_start`` steps regress ``u`` on the static distance to ``P`` instead of
-    the main loss (needs ``data.static_targets``).
+    the first ``loss_cfg.warm_start`` (a fraction) of the steps regress ``u`` on the static distance
+    to ``P`` instead of the main loss (needs ``data.static_targets``).
 
     ``expand`` (CAP-UDF's progressive expansion, §3.4): called once after ``train_cfg.expand_at``
     completed steps with the network and the data; it returns the new static targets (T, 3), and the
@@ -215,8 +219,10 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     n_anchors = len(data.anchors)
     gs_rows = loss_cfg.gs_anchors if 0 < loss_cfg.gs_anchors < n_anchors else 0
     iters = train_cfg.iters
-    if loss_cfg.warm_start > 0 and data.static_targets is None:
-        raise ValueError("loss.warm_start needs the static targets t(q) in the training data")
+    warm_steps = round(loss_cfg.warm_start * iters)
+    if (warm_steps > 0 or loss_cfg.lambda_far) and data.static_targets is None:
+        raise ValueError("loss.warm_start and loss.lambda_far need the static targets t(q) in the "
+                         "training data")
     net.train()
     with progress.stage("training", iters) as advance:
         log = LoopLog(iters, advance, device, log_every)
@@ -233,7 +239,7 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
             anchor_rows = (torch.randint(0, n_anchors, (gs_rows,), generator=generator, device=device)
                            if gs_rows else None)
             terms = loss_terms(net, data.queries[batch], batch, data, loss_cfg, nn_index, anchor_rows,
-                               explicit, warm=i < loss_cfg.warm_start)
+                               explicit, warm=i < warm_steps)
             terms["total"].backward()
             opt.step()
             log.step(i, terms)

@@ -19,32 +19,41 @@ from .base import Fitted
 
 
 def prepare(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
-            progress: Progress = QUIET, static_targets: bool | None = None) -> TrainingData:
+            progress: Progress = QUIET, static_targets: bool | None = None,
+            timings: dict[str, float] | None = None) -> TrainingData:
     """Surface rows, queries (+ static targets for the pull loss) and anchors, on ``device`` (§1.2–1.4).
 
     ``points`` is the voxelised, normalised cloud (unit space). Random draws use a NumPy generator
     seeded with ``seed`` so that the samples are identical on every device. ``static_targets``:
-    compute ``t(q)`` (default: when the loss needs it, kinds ``pull`` and ``capudf``).
+    compute ``t(q)`` (default: when the loss needs it: kinds ``pull`` and ``capudf``, warm start).
+    ``timings``: if given, receives the seconds of each step (``subset_s``, ``sigma_s``,
+    ``queries_s``, ``anchors_s``, ``static_nn_s``).
     """
+    clock = _StageClock(timings, device)
     if static_targets is None:
-        static_targets = cfg.loss.kind in ("pull", "capudf") or cfg.loss.warm_start > 0
+        static_targets = (cfg.loss.kind in ("pull", "capudf") or cfg.loss.warm_start > 0
+                          or cfg.loss.lambda_far > 0)
     d = cfg.data
     rng = np.random.default_rng(seed)
     with progress.stage("sampling", 4) as advance:
         surface = surface_subset(points, d.subset, d.subset_threshold, d.fps_sizes, d.max_points,
                                  device=str(device))
+        clock("subset_s")
         advance()
         sigma = query_spread(surface, d.sigma_k)
+        clock("sigma_s")
         queries = np.concatenate([gaussian_queries(surface, sigma, d.queries_per_point, rng),
                                   grid_queries(d.grid_queries, rng)])
         if d.drop_to_multiple > 0 and len(queries) % d.drop_to_multiple:
             queries = queries[: len(queries) - len(queries) % d.drop_to_multiple]
+        clock("queries_s")
         advance()
         if d.anchors == "none":
             anchor_pts, anchor_tgt = np.zeros((0, 3)), np.zeros(0)
         else:
             anchor_pts, anchor_tgt = anchors(surface, d.anchors, d.anchor_resolution,
                                              d.anchor_squared_target, d.anchor_min_target)
+        clock("anchors_s")
         advance()
         as_t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
         data = TrainingData(surface=as_t(surface), queries=as_t(queries), anchors=as_t(anchor_pts),
@@ -53,8 +62,25 @@ def prepare(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
             # static nearest surface point t(q), computed once (§1.3 step 5)
             idx = NearestIndex(data.surface).query(data.queries).to(device)
             data.static_targets = data.surface[idx]
+        clock("static_nn_s")
         advance()
     return data
+
+
+class _StageClock:
+    """Calling it with a name stores the seconds since the previous call (device-synchronised)."""
+
+    def __init__(self, sink: dict[str, float] | None, device: torch.device) -> None:
+        self.sink, self.device, self.last = sink, device, time.perf_counter()
+
+    def __call__(self, name: str) -> None:
+        if self.sink is None:
+            return
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        now = time.perf_counter()
+        self.sink[name] = now - self.last
+        self.last = now
 
 
 def build_network(cfg: Config, seed: int, device: torch.device) -> torch.nn.Module:
@@ -70,11 +96,13 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
         progress: Progress = QUIET) -> Fitted:
     """Train the UltraBoneUDF field on a unit-space cloud; returns the field and its counts."""
     t0 = time.perf_counter()
-    data = prepare(points, cfg, device, seed, progress)
+    stages: dict[str, float] = {}
+    data = prepare(points, cfg, device, seed, progress, timings=stages)
     prep_s = time.perf_counter() - t0
     net = build_network(cfg, seed, device)
     result = train(net, data, cfg.loss, cfg.train, seed, progress)
     counts = {"surface_points": len(data.surface), "queries": len(data.queries),
               "anchors": len(data.anchors), "parameters": count_parameters(net)}
     return Fitted(field=MLPField(net), counts=counts,
-                  timings={"preprocess_s": prep_s, "train_s": result.seconds}, history=result.history)
+                  timings={"preprocess_s": prep_s, "train_s": result.seconds, **stages},
+                  history=result.history)
