@@ -125,3 +125,16 @@ def test_far_term_is_the_static_distance_error_beyond_the_threshold():
     expected = ((net(q) - d).abs() * far).sum() / len(q)
     torch.testing.assert_close(terms["far"], expected.detach(), rtol=1e-5, atol=1e-7)
     torch.testing.assert_close(terms["total"], terms["tangent"] + 2.0 * terms["far"])
+
+
+def test_training_threads_are_restored():
+    from ultraboneudf.training import cpu_threads
+
+    before = torch.get_num_threads()
+    with cpu_threads(1):
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
+    with pytest.raises(RuntimeError):
+        with cpu_threads(1):
+            raise RuntimeError("boom")
+    assert torch.get_num_threads() == before

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -72,6 +73,18 @@ class EpochSampler:
 
 
 SAMPLERS = {"strided": StridedSampler, "epoch": EpochSampler}
+
+
+@contextmanager
+def cpu_threads(n: int):
+    """Run the block with ``n`` PyTorch CPU threads (``n ≤ 0``: unchanged), restoring the count after."""
+    before = torch.get_num_threads()
+    if n > 0:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def make_optimizer(params, device: torch.device, fused: bool) -> torch.optim.Adam:
@@ -224,7 +237,8 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
         raise ValueError("loss.warm_start and loss.lambda_far need the static targets t(q) in the "
                          "training data")
     net.train()
-    with progress.stage("training", iters) as advance:
+    threads = train_cfg.threads if device.type == "cpu" else 0
+    with cpu_threads(threads), progress.stage("training", iters) as advance:
         log = LoopLog(iters, advance, device, log_every)
         for i in range(iters):
             if expand is not None and train_cfg.expand_at > 0 and i == train_cfg.expand_at:
