@@ -11,7 +11,7 @@ from .config import Config, preset
 from .errors import InputError
 from .evaluation import EvalResult, evaluate
 from .io import load_mesh, load_points, save_mesh
-from .pipeline import Reconstruction, reconstruct
+from .pipeline import Reconstruction, reconstruct, reconstruct_many
 
 __all__ = ["__version__", "Config", "preset", "InputError", "load_points", "load_mesh", "save_mesh",
-           "reconstruct", "Reconstruction", "evaluate", "EvalResult"]
+           "reconstruct", "reconstruct_many", "Reconstruction", "evaluate", "EvalResult"]

@@ -11,7 +11,7 @@ import random
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -24,8 +24,10 @@ from .extraction import extract_mesh, mesh_quality
 from .geometry.normalize import Normalizer
 from .geometry.voxel import voxel_downsample, voxel_downsample_with
 from .io import save_json, save_mesh, validate_points
-from .methods import get_method
+from .methods import Fitted, get_method
+from .methods import ultraboneudf as ubu
 from .progress import Progress
+from .training_many import train_many
 
 
 @dataclass
@@ -125,18 +127,88 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
     """
     t_start = time.perf_counter()
     progress = progress or Progress(quiet=quiet)
+    cfg, entry = _configure(preset, method, config, overrides, assignments)
+    dev = resolve_device(device)
+    points = validate_points(points_mm, source=source)
+    probe = _validate_probe(probe_positions, len(points), source)
+    seed_everything(seed)
+    unit = _to_unit(points, probe, cfg, seed)
+    extra = {"probe": unit.probe} if entry.takes_probe else {}
+    fitted = entry.fit(unit.points, cfg, dev, seed, progress, **extra)
+    return _finish(fitted, unit, cfg, dev, progress, method, preset if config is None else "custom", seed,
+                   t_start)
+
+
+def reconstruct_many(clouds_mm: Sequence[Any], preset: str = "fast", device: str | torch.device = "auto",
+                     seed: int = 42, *, assignments: list[str] | tuple[str, ...] = (),
+                     progress: Progress | None = None, quiet: bool = True,
+                     sources: Sequence[str] | None = None, **overrides: Any) -> list[Reconstruction]:
+    """Reconstruct several scans with UltraBoneUDF, training their fields together in one batched
+    loop (:mod:`ultraboneudf.training_many`): for dataset runs, where per-step overhead dominates.
+
+    Each scan is pre-processed, normalised, extracted and mapped back on its own, exactly as
+    :func:`reconstruct` (same preset, overrides and ``seed`` for every scan), and its field equals the
+    one :func:`reconstruct` trains, step for step. In each result ``timings.train_s`` and
+    ``timings.total_s`` are those of the whole batch (shared); ``sources`` name the scans in errors.
+    """
+    t_start = time.perf_counter()
+    progress = progress or Progress(quiet=quiet)
+    clouds = list(clouds_mm)
+    names = list(sources) if sources is not None else [f"scan {k}" for k in range(len(clouds))]
+    if not clouds or len(names) != len(clouds):
+        raise InputError("reconstruct_many needs at least one cloud and one source name per cloud")
+    cfg, _ = _configure(preset, "ultraboneudf", None, overrides, assignments)
+    dev = resolve_device(device)
+    units, datas, stages, prep = [], [], [], []
+    for cloud, name in zip(clouds, names):
+        seed_everything(seed)
+        unit = _to_unit(validate_points(cloud, source=name), None, cfg, seed)
+        t0 = time.perf_counter()
+        stage: dict[str, float] = {}
+        datas.append(ubu.prepare(unit.points, cfg, dev, seed, progress, timings=stage))
+        prep.append(time.perf_counter() - t0)
+        units.append(unit)
+        stages.append(stage)
+    nets = [ubu.build_network(cfg, seed, dev) for _ in clouds]
+    trained, results = train_many(nets, datas, cfg.loss, cfg.train, [seed] * len(clouds), progress)
+    out = []
+    for k, unit in enumerate(units):
+        fitted = ubu.fitted_field(trained[k], datas[k], prep[k], results[k].seconds, stages[k],
+                                  results[k].history)
+        out.append(_finish(fitted, unit, cfg, dev, progress, "ultraboneudf", preset, seed, t_start))
+    for rec in out:  # the batch's wall time, shared by its scans
+        rec.timings["total_s"] = time.perf_counter() - t_start
+    return out
+
+
+@dataclass
+class _UnitCloud:
+    """A cloud after voxelisation, in unit space, with its map back to mm."""
+
+    points: np.ndarray          # (M, 3) unit space
+    probe: np.ndarray | None    # (M, 3) unit space probe positions, if any
+    normalizer: Normalizer
+    input_points: int
+    voxel_s: float
+
+
+def _configure(preset: str, method: str, config: Config | None, overrides: dict[str, Any],
+               assignments: list[str] | tuple[str, ...]) -> tuple[Config, Any]:
+    """The run's configuration: ``config`` as given, else the preset with the method's defaults,
+    then the overrides; and the method's registry entry."""
     entry = get_method(method)
     cfg = config if config is not None else make_preset(preset)
     if config is None:
         entry.configure(cfg, preset)  # the method's own defaults, before the user's overrides
     apply_overrides(cfg, overrides, assignments)
-    fit = entry.fit
-    dev = resolve_device(device)
-    points = validate_points(points_mm, source=source)
-    probe = _validate_probe(probe_positions, len(points), source)
-    seed_everything(seed)
+    return cfg, entry
 
+
+def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int) -> _UnitCloud:
+    """Optional test noise, voxel mean (probe positions follow their points), and the one
+    normalisation into unit space."""
     t0 = time.perf_counter()
+    n_input = len(points)
     if cfg.data.noise_sigma_mm > 0:
         points = points + np.random.default_rng(seed + 1).normal(0.0, cfg.data.noise_sigma_mm, points.shape)
     voxel_probe = None
@@ -145,12 +217,14 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
     else:  # each voxel's probe position: the mean of those of its points
         voxelised, voxel_probe = voxel_downsample_with(points, probe, cfg.data.voxel_size_mm)
     normalizer = Normalizer.fit(voxelised)
-    unit_points = normalizer.forward(voxelised)
-    unit_probe = None if voxel_probe is None else normalizer.forward(voxel_probe)
-    voxel_s = time.perf_counter() - t0
+    return _UnitCloud(points=normalizer.forward(voxelised),
+                      probe=None if voxel_probe is None else normalizer.forward(voxel_probe),
+                      normalizer=normalizer, input_points=n_input, voxel_s=time.perf_counter() - t0)
 
-    extra = {"probe": unit_probe} if entry.takes_probe else {}
-    fitted = fit(unit_points, cfg, dev, seed, progress, **extra)
+
+def _finish(fitted: Fitted, unit: _UnitCloud, cfg: Config, dev: torch.device, progress: Progress,
+            method: str, preset: str, seed: int, t_start: float) -> Reconstruction:
+    """Extraction (unless the method gave a mesh), the map back to mm, timings, counts, quality."""
     t1 = time.perf_counter()
     if fitted.mesh is not None:
         unit_mesh = fitted.mesh
@@ -162,24 +236,24 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
     extract_s = time.perf_counter() - t1
-    mesh = normalizer.inverse_mesh(unit_mesh) if unit_mesh is not None else None
+    mesh = unit.normalizer.inverse_mesh(unit_mesh) if unit_mesh is not None else None
 
     timings = {
-        "preprocess_s": voxel_s + fitted.timings.get("preprocess_s", 0.0),
+        "preprocess_s": unit.voxel_s + fitted.timings.get("preprocess_s", 0.0),
         "train_s": fitted.timings.get("train_s", 0.0),
         "extract_s": extract_s,
-        "voxel_s": voxel_s,
+        "voxel_s": unit.voxel_s,
         # the method's own pre-processing steps (e.g. subset_s, sigma_s, static_nn_s)
         **{k: v for k, v in fitted.timings.items() if k not in ("preprocess_s", "train_s")},
     }
     timings["total_s"] = time.perf_counter() - t_start
-    counts = {"input_points": len(points), "voxelized_points": len(voxelised), **fitted.counts,
+    counts = {"input_points": unit.input_points, "voxelized_points": len(unit.points), **fitted.counts,
               "vertices": 0 if mesh is None else len(mesh.vertices),
               "faces": 0 if mesh is None else len(mesh.faces)}
     quality = mesh_quality(mesh) if mesh is not None else {}
-    return Reconstruction(mesh=mesh, method=method, preset=preset if config is None else "custom",
-                          config=cfg, timings=timings, counts=counts, quality=quality, device=str(dev), seed=seed,
-                          normalizer=normalizer, history=fitted.history, method_info=fitted.info)
+    return Reconstruction(mesh=mesh, method=method, preset=preset, config=cfg, timings=timings,
+                          counts=counts, quality=quality, device=str(dev), seed=seed,
+                          normalizer=unit.normalizer, history=fitted.history, method_info=fitted.info)
 
 
 def _validate_probe(probe_positions: Any, n_points: int, source: str) -> np.ndarray | None:

@@ -101,8 +101,13 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     prep_s = time.perf_counter() - t0
     net = build_network(cfg, seed, device)
     result = train(net, data, cfg.loss, cfg.train, seed, progress)
+    return fitted_field(net, data, prep_s, result.seconds, stages, result.history)
+
+
+def fitted_field(net: torch.nn.Module, data: TrainingData, prep_s: float, train_s: float,
+                 stages: dict[str, float], history: dict[str, list[float]]) -> Fitted:
+    """The :class:`Fitted` of a trained network: its field, counts and timings."""
     counts = {"surface_points": len(data.surface), "queries": len(data.queries),
               "anchors": len(data.anchors), "parameters": count_parameters(net)}
     return Fitted(field=MLPField(net), counts=counts,
-                  timings={"preprocess_s": prep_s, "train_s": result.seconds, **stages},
-                  history=result.history)
+                  timings={"preprocess_s": prep_s, "train_s": train_s, **stages}, history=history)

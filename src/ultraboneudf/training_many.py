@@ -1,0 +1,231 @@
+"""Several scans trained at once: K independent UltraBoneUDF fields in one process (issue #7).
+
+At the ``fast`` preset's batch of 250 queries a training step is mostly fixed overhead (operator
+dispatch, the optimiser, the nearest-neighbour call), not arithmetic. Stacking the K networks'
+weights into ``(K, out, in)`` tensors runs one batched matrix product per layer for all scans, so
+the overhead is paid once per step instead of K times. The scans stay independent: each has its
+own data, nearest-neighbour index, batch draw (from its own generator, seeded as :func:`train`
+seeds it) and loss; the total loss is their sum, so each network's gradient is its own loss's, and
+Adam is element-wise, so one optimiser over the stacked weights is K independent optimisers. Step
+for step the result equals K separate :func:`~ultraboneudf.training.train` runs (tested).
+
+Supported: the tangent loss with ``L_GS``, the warm start and the far-field term (the
+``official``, ``paper`` and ``fast`` presets); networks without skip connections.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .config import LossConfig, TrainConfig
+from .fields.base import normalize
+from .fields.mlp import DistanceMLP
+from .geometry.neighbors import NearestIndex
+from .progress import QUIET, Progress
+from .training import SAMPLERS, LoopLog, TrainingData, TrainResult, cpu_threads, learning_rate, make_optimizer
+
+
+class StackedMLP(nn.Module):
+    """K :class:`DistanceMLP` of the same widths (no skip) as stacked parameters ``v (K, out, in)``,
+    ``g (K, out, 1)``, ``bias (K, out)``. Inputs ``(K, M, 3)``, outputs ``(K, M)``."""
+
+    def __init__(self, nets: list[DistanceMLP]) -> None:
+        super().__init__()
+        first = nets[0]
+        if any(n.skip for n in nets):
+            raise ValueError("stacked training supports networks without skip connections")
+        shapes = [[tuple(p.shape) for p in n.parameters()] for n in nets]
+        if any(s != shapes[0] for s in shapes) or any(n.abs_output != first.abs_output for n in nets):
+            raise ValueError("stacked networks must have the same widths and output")
+        self.abs_output = first.abs_output
+        self.weight_norm = [layer.weight_norm for layer in first.layers]
+        stack = lambda name, i: nn.Parameter(torch.stack([getattr(n.layers[i], name).detach()  # noqa: E731
+                                                          for n in nets]).clone())
+        self.v = nn.ParameterList([stack("v", i) for i in range(len(first.layers))])
+        self.bias = nn.ParameterList([stack("bias", i) for i in range(len(first.layers))])
+        self.g = nn.ParameterList([stack("g", i) if wn else nn.Parameter(torch.zeros(0), requires_grad=False)
+                                   for i, wn in enumerate(self.weight_norm)])
+
+    def weights(self) -> list[torch.Tensor]:
+        """The effective weights ``(K, out, in)`` of every layer."""
+        return [v * (g / v.norm(dim=2, keepdim=True)) if wn else v
+                for v, g, wn in zip(self.v, self.g, self.weight_norm)]
+
+    def forward(self, x: torch.Tensor, weights: list[torch.Tensor] | None = None) -> torch.Tensor:
+        weights = weights or self.weights()
+        h = x
+        last = len(weights) - 1
+        for i, (w, b) in enumerate(zip(weights, self.bias)):
+            h = torch.baddbmm(b[:, None, :], h, w.transpose(1, 2))
+            if i < last:
+                h = torch.relu(h)
+        out = h.squeeze(-1)
+        return out.abs() if self.abs_output else out
+
+    def value_and_grad(self, x: torch.Tensor, weights: list[torch.Tensor] | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``u`` (K, M) and ``∇u`` (K, M, 3): the hand-written backward sweep of
+        :meth:`DistanceMLP.value_and_grad`, batched over the K networks."""
+        weights = weights or self.weights()
+        h, acts = x, []
+        last = len(weights) - 1
+        for i, (w, b) in enumerate(zip(weights, self.bias)):
+            z = torch.baddbmm(b[:, None, :], h, w.transpose(1, 2))
+            if i < last:
+                h = torch.relu(z)
+                acts.append(h)
+        z = z.squeeze(-1)
+        u = z.abs() if self.abs_output else z
+        d = z.sign()[..., None] if self.abs_output else torch.ones_like(z)[..., None]
+        for i in range(last, -1, -1):
+            if i < last:
+                d = torch.ops.aten.threshold_backward(d, acts[i], 0.0)
+            d = torch.bmm(d, weights[i])
+        return u, d
+
+    def unstack(self, template: DistanceMLP) -> list[DistanceMLP]:
+        """K separate networks (copies of ``template``'s structure) holding the trained weights."""
+        nets = []
+        for k in range(self.v[0].shape[0]):
+            net = DistanceMLP.__new__(DistanceMLP)
+            nn.Module.__init__(net)
+            net.skip, net.abs_output = template.skip, template.abs_output
+            net.layers = nn.ModuleList()
+            for layer, v, g, b in zip(template.layers, self.v, self.g, self.bias):
+                copy = type(layer).__new__(type(layer))
+                nn.Module.__init__(copy)
+                copy.weight_norm = layer.weight_norm
+                copy.v = nn.Parameter(v[k].detach().clone())
+                copy.bias = nn.Parameter(b[k].detach().clone())
+                if layer.weight_norm:
+                    copy.g = nn.Parameter(g[k].detach().clone())
+                net.layers.append(copy)
+            nets.append(net.to(self.v[0].device).eval())
+        return nets
+
+
+def _check(loss_cfg: LossConfig) -> None:
+    if loss_cfg.kind != "tangent" or loss_cfg.lambda_os or loss_cfg.lambda_eik:
+        raise ValueError("training several scans at once supports the tangent loss with L_GS, the warm "
+                         "start and the far-field term (no L_OS, L_Eik or other loss kinds)")
+
+
+def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: LossConfig,
+               train_cfg: TrainConfig, seeds: list[int], progress: Progress = QUIET,
+               log_every: int = 100) -> tuple[list[DistanceMLP], list[TrainResult]]:
+    """Train ``nets[k]`` on ``datas[k]`` with seed ``seeds[k]``, all K at once (see the module doc).
+
+    Returns the trained networks (new modules) and one :class:`TrainResult` per scan (the shared
+    wall time; each scan's own loss history)."""
+    _check(loss_cfg)
+    if not (len(nets) == len(datas) == len(seeds) >= 1):
+        raise ValueError("need one network, one data set and one seed per scan")
+    if train_cfg.sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {train_cfg.sampler!r}; choose one of {', '.join(SAMPLERS)}")
+    device = datas[0].queries.device
+    k_scans, iters = len(nets), train_cfg.iters
+    stacked = StackedMLP(nets).to(device)
+    generators = [torch.Generator(device=device).manual_seed(s) for s in seeds]
+    samplers = [SAMPLERS[train_cfg.sampler](len(d.queries), train_cfg.batch, gen, device)
+                for d, gen in zip(datas, generators)]
+    indices = [NearestIndex(d.surface) for d in datas]
+    opt = make_optimizer(stacked.parameters(), device, fused=True)
+    warm_steps = round(loss_cfg.warm_start * iters)
+    if (warm_steps > 0 or loss_cfg.lambda_far) and any(d.static_targets is None for d in datas):
+        raise ValueError("loss.warm_start and loss.lambda_far need the static targets t(q)")
+    anchors = _Anchors(datas, loss_cfg.gs_anchors) if loss_cfg.lambda_gs else None
+    stacked.train()
+    threads = train_cfg.threads if device.type == "cpu" else 0
+    with cpu_threads(threads), progress.stage("training", iters) as advance:
+        log = LoopLog(iters, advance, device, log_every)
+        for i in range(iters):
+            for group in opt.param_groups:
+                group["lr"] = learning_rate(i, train_cfg.lr, train_cfg.warmup, iters)
+            rows = [s() for s in samplers]
+            opt.zero_grad(set_to_none=True)
+            terms = _loss_terms(stacked, datas, rows, indices, anchors, generators, loss_cfg, i < warm_steps)
+            terms["total"].sum().backward()
+            opt.step()
+            log.step(i, terms)
+    seconds, history = log.finish()
+    results = [TrainResult(seconds=seconds, iterations=iters,
+                           history={key: [row[k] for row in values] for key, values in history.items()})
+               for k in range(k_scans)]
+    return stacked.unstack(nets[0]), results
+
+
+class _Anchors:
+    """Each scan's anchors padded to a common count (with a mask), or drawn ``per_step`` at a time."""
+
+    def __init__(self, datas: list[TrainingData], per_step: int) -> None:
+        counts = [len(d.anchors) for d in datas]
+        self.counts = counts
+        self.per_step = per_step if 0 < per_step < min(counts) else 0
+        if not self.per_step:
+            g = max(counts)
+            dev = datas[0].anchors.device
+            self.points = torch.zeros((len(datas), g, 3), device=dev)
+            self.targets = torch.zeros((len(datas), g), device=dev)
+            self.mask = torch.zeros((len(datas), g), device=dev)
+            for k, d in enumerate(datas):
+                self.points[k, :counts[k]] = d.anchors
+                self.targets[k, :counts[k]] = d.anchor_targets
+                self.mask[k, :counts[k]] = 1.0
+
+    def loss(self, net: StackedMLP, weights: list[torch.Tensor], datas: list[TrainingData],
+             generators: list[torch.Generator]) -> torch.Tensor:
+        """``L_GS`` per scan (K,): the mean squared error over its anchors (§1.6 Eq. 7)."""
+        if self.per_step:
+            # the same draw, from the same generator, as train() makes after its batch draw
+            rows = [torch.randint(0, c, (self.per_step,), generator=g, device=d.anchors.device)
+                    for c, g, d in zip(self.counts, generators, datas)]
+            pts = torch.stack([d.anchors[r] for d, r in zip(datas, rows)])
+            tgt = torch.stack([d.anchor_targets[r] for d, r in zip(datas, rows)])
+            return (net(pts, weights) - tgt).square().mean(dim=1)
+        err = (net(self.points, weights) - self.targets).square() * self.mask
+        return err.sum(dim=1) / self.mask.sum(dim=1)
+
+
+def _loss_terms(net: StackedMLP, datas: list[TrainingData], rows: list[torch.Tensor],
+                indices: list[NearestIndex], anchors: _Anchors | None, generators: list[torch.Generator],
+                cfg: LossConfig, warm: bool) -> dict[str, torch.Tensor]:
+    """Per-scan loss terms, each (K,), as :func:`~ultraboneudf.training.loss_terms` computes them."""
+    weights = net.weights()
+    q = torch.stack([d.queries[r] for d, r in zip(datas, rows)])
+    terms: dict[str, torch.Tensor] = {}
+    if warm:
+        t = torch.stack([d.static_targets[r] for d, r in zip(datas, rows)])
+        terms["warm"] = (net(q, weights) - (q - t).norm(dim=2)).abs().mean(dim=1)
+        total = terms["warm"]
+    else:
+        u, g = net.value_and_grad(q, weights)
+        g_hat = normalize(g)
+        moved = q - u[..., None] * g_hat
+        foot = torch.stack([d.surface[ix.query(m).to(d.surface.device)]
+                            for d, ix, m in zip(datas, indices, moved)])
+        residual = (g_hat * (q - foot)).sum(dim=2) - u
+        terms["tangent"] = _batched_tangent(residual, cfg.tangent_norm)
+        total = cfg.lambda_tangent * terms["tangent"]
+        if cfg.lambda_far:
+            t = torch.stack([d.static_targets[r] for d, r in zip(datas, rows)])
+            dist = (q - t).norm(dim=2)
+            terms["far"] = ((u - dist).abs() * (dist > cfg.far_threshold)).mean(dim=1)
+            total = total + cfg.lambda_far * terms["far"]
+    if anchors is not None:
+        terms["gs"] = anchors.loss(net, weights, datas, generators)
+        total = total + cfg.lambda_gs * terms["gs"]
+    terms["total"] = total
+    return terms
+
+
+def _batched_tangent(residual: torch.Tensor, norm: str) -> torch.Tensor:
+    """Per-scan tangent loss (K,) of residuals (K, B): mean |r| (``l1``) or mean r² (``l2``)."""
+    if norm == "l1":
+        return residual.abs().mean(dim=1)
+    if norm == "l2":
+        return residual.square().mean(dim=1)
+    raise ValueError(f"unknown tangent norm {norm!r}")
+
+
+__all__ = ["StackedMLP", "train_many"]
