@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from ultraboneudf.config import preset
+from ultraboneudf.errors import InputError
 from ultraboneudf.fields.mlp import DistanceMLP, value_and_grad
 from ultraboneudf.geometry.queries import anchors, gaussian_queries, grid_queries, query_spread
 from ultraboneudf.training import EpochSampler, TrainingData, train
@@ -80,10 +81,10 @@ def test_anchor_subset_and_unknown_choices():
     hist = train(net, data, cfg.loss, cfg.train, seed=0, log_every=1).history
     assert len(hist["gs"]) == 20 and all(np.isfinite(hist["gs"]))
     cfg.train.sampler = "shuffled"
-    with pytest.raises(ValueError, match="unknown sampler"):
+    with pytest.raises(InputError, match="unknown train.sampler"):
         train(net, data, cfg.loss, cfg.train, seed=0)
     cfg.train.sampler, cfg.train.step = "epoch", "compiled"
-    with pytest.raises(ValueError, match="unknown training step"):
+    with pytest.raises(InputError, match="unknown train.step"):
         train(net, data, cfg.loss, cfg.train, seed=0)
 
 

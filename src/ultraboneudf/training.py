@@ -17,6 +17,7 @@ import torch
 from torch import nn
 
 from .config import LossConfig, TrainConfig
+from .errors import InputError
 from .fields.base import normalize
 from .fields.mlp import value_and_grad
 from .geometry.neighbors import NearestIndex
@@ -221,9 +222,9 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     device = data.queries.device
     generator = torch.Generator(device=device).manual_seed(seed)
     if train_cfg.sampler not in SAMPLERS:
-        raise ValueError(f"unknown sampler {train_cfg.sampler!r}; choose one of {', '.join(SAMPLERS)}")
+        raise InputError(f"unknown train.sampler {train_cfg.sampler!r}; choose one of {', '.join(SAMPLERS)}")
     if train_cfg.step not in ("optimised", "plain"):
-        raise ValueError(f"unknown training step {train_cfg.step!r}; choose optimised or plain")
+        raise InputError(f"unknown train.step {train_cfg.step!r}; choose optimised or plain")
     make_sampler = SAMPLERS[train_cfg.sampler]
     sampler = make_sampler(len(data.queries), train_cfg.batch, generator, device)
     nn_index = NearestIndex(data.surface)

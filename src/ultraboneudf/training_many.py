@@ -19,6 +19,7 @@ import torch
 from torch import nn
 
 from .config import LossConfig, TrainConfig
+from .errors import InputError
 from .fields.base import normalize
 from .fields.mlp import DistanceMLP
 from .geometry.neighbors import NearestIndex
@@ -107,7 +108,7 @@ class StackedMLP(nn.Module):
 
 def _check(loss_cfg: LossConfig) -> None:
     if loss_cfg.kind != "tangent" or loss_cfg.lambda_os or loss_cfg.lambda_eik:
-        raise ValueError("training several scans at once supports the tangent loss with L_GS, the warm "
+        raise InputError("training several scans at once supports the tangent loss with L_GS, the warm "
                          "start and the far-field term (no L_OS, L_Eik or other loss kinds)")
 
 
@@ -122,7 +123,7 @@ def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: Los
     if not (len(nets) == len(datas) == len(seeds) >= 1):
         raise ValueError("need one network, one data set and one seed per scan")
     if train_cfg.sampler not in SAMPLERS:
-        raise ValueError(f"unknown sampler {train_cfg.sampler!r}; choose one of {', '.join(SAMPLERS)}")
+        raise InputError(f"unknown train.sampler {train_cfg.sampler!r}; choose one of {', '.join(SAMPLERS)}")
     device = datas[0].queries.device
     k_scans, iters = len(nets), train_cfg.iters
     stacked = StackedMLP(nets).to(device)
