@@ -42,8 +42,8 @@ def make_input(name: str, seed: int = 0):
     return sample_surface(truth, 100_000, seed=seed), truth
 
 
-def run_one(args: argparse.Namespace) -> dict:
-    """One preset on one device; returns a JSON-able row."""
+def run_one(args: argparse.Namespace) -> list[dict]:
+    """One preset on one device: its row, then one row per ``--reextract`` of the same field."""
     import torch
 
     import ultraboneudf
@@ -69,6 +69,7 @@ def run_one(args: argparse.Namespace) -> dict:
     if rec.mesh is None:
         row.update(cd_mm=None, hd95_mm=None, failed=True)
     else:
+        row["nonmanifold_edges"] = rec.quality.get("nonmanifold_edges")
         res = evaluate(rec.mesh, truth, samples=args.samples, seed=0)
         row.update(cd_mm=round(res.cd_mm, 4), hd95_mm=round(res.hd95_mm, 4),
                    area_ratio=round(float(rec.mesh.area / truth.area), 3))
@@ -78,12 +79,42 @@ def run_one(args: argparse.Namespace) -> dict:
             t1 = time.perf_counter()
             rec.save(target)
             row["write_s"] = round(time.perf_counter() - t1, 3)
+    row["extract_mode"] = f"{rec.config.extract.mode}@{rec.config.extract.max_depth}"
+    if args.save_field and rec.field is not None:
+        torch.save({"state_dict": rec.field.net.state_dict(), "config": rec.config.to_dict(),
+                    "normalizer": rec.normalizer.to_dict()}, args.save_field)
+    return [row] + [reextract(rec, truth, spec, args.samples) for spec in args.reextract]
+
+
+def reextract(rec, truth, spec: str, samples: int) -> dict:
+    """The same trained field extracted again as ``mode@depth`` (issue #8: modes side by side)."""
+    import copy
+
+    from ultraboneudf.evaluation import evaluate
+    from ultraboneudf.extraction import extract_mesh, mesh_quality
+
+    mode, depth = spec.split("@")
+    cfg = copy.deepcopy(rec.config.extract)
+    cfg.mode, cfg.max_depth = mode, int(depth)
+    t0 = time.perf_counter()
+    unit_mesh = extract_mesh(rec.field, cfg)
+    seconds = time.perf_counter() - t0
+    row = {"preset": rec.preset, "device": rec.device, "extract_mode": spec, "extract_s": round(seconds, 2)}
+    if unit_mesh is None or len(unit_mesh.faces) == 0:
+        return {**row, "cd_mm": None, "hd95_mm": None, "failed": True}
+    mesh = rec.normalizer.inverse_mesh(unit_mesh)
+    res = evaluate(mesh, truth, samples=samples, seed=0)
+    quality = mesh_quality(mesh)
+    return {**row, "faces": len(mesh.faces), "cd_mm": round(res.cd_mm, 4), "hd95_mm": round(res.hd95_mm, 4),
+            "area_ratio": round(float(mesh.area / truth.area), 3),
+            "nonmanifold_edges": quality.get("nonmanifold_edges")}
     return row
 
 
 def print_table(rows: list[dict]) -> None:
-    cols = ["preset", "device", "iters", "preprocess_s", "train_s", "extract_s", "total_s", "it_per_s",
-            "peak_host_mb", "peak_gpu_mb", "faces", "area_ratio", "cd_mm", "hd95_mm"]
+    cols = ["preset", "device", "extract_mode", "iters", "preprocess_s", "train_s", "extract_s", "total_s",
+            "it_per_s", "peak_host_mb", "peak_gpu_mb", "faces", "area_ratio", "nonmanifold_edges", "cd_mm",
+            "hd95_mm"]
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for r in rows:
@@ -94,7 +125,7 @@ def print_table(rows: list[dict]) -> None:
     print()
     print("| preset | device | " + " | ".join(stages) + " |")
     print("|" + "---|" * (len(stages) + 2))
-    for r in rows:
+    for r in (r for r in rows if "iters" in r):  # training runs, not re-extractions
         print(f"| {r['preset']} | {r['device']} | " + " | ".join(str(r.get(c, "")) for c in stages) + " |")
     print()
     base = {r["device"]: r for r in rows if r["preset"] == "official" and r.get("total_s")}
@@ -117,34 +148,42 @@ def main() -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--json", type=Path, help="also write the rows as JSON")
     p.add_argument("--save", default=None, help="(single run) write the mesh and sidecar here")
+    p.add_argument("--save-field", default=None, help="(single run) torch.save the trained network here")
+    p.add_argument("--reextract", action="append", default=[], metavar="MODE@DEPTH",
+                   help="also extract the same field as e.g. clean@8 or faithful@9 (repeatable)")
     p.add_argument("--verbose", action="store_true", help="show progress bars")
     p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--preset", help=argparse.SUPPRESS)
     p.add_argument("--device", help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.one:
-        print("ROW " + json.dumps(run_one(args)), flush=True)
+        for row in run_one(args):
+            print("ROW " + json.dumps(row), flush=True)
         return
     rows = []
     for device in args.devices.split(","):
         for name in args.presets.split(","):
             cmd = [sys.executable, __file__, "--one", "--preset", name, "--device", device, "--input", args.input,
                    "--samples", str(args.samples), "--seed", str(args.seed)]
-            for flag, value in (("--iters", args.iters), ("--threads", args.threads), ("--save", args.save)):
+            for flag, value in (("--iters", args.iters), ("--threads", args.threads), ("--save", args.save),
+                                ("--save-field", args.save_field)):
                 if value:
                     cmd += [flag, str(value)]
+            for spec in args.reextract:
+                cmd += ["--reextract", spec]
             for item in args.set:
                 cmd += ["--set", item]
             if args.verbose:
                 cmd.append("--verbose")
             out = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=False,
                                  stderr=None if args.verbose else subprocess.PIPE)
-            line = [ln for ln in out.stdout.splitlines() if ln.startswith("ROW ")]
-            if not line:
+            lines = [ln for ln in out.stdout.splitlines() if ln.startswith("ROW ")]
+            if not lines:
                 print(f"{name} on {device} failed:\n{out.stderr}", file=sys.stderr)
                 continue
-            rows.append(json.loads(line[-1][4:]))
-            print(json.dumps(rows[-1]), file=sys.stderr)
+            for ln in lines:
+                rows.append(json.loads(ln[4:]))
+                print(json.dumps(rows[-1]), file=sys.stderr)
     print_table(rows)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))

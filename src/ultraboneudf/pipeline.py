@@ -21,6 +21,7 @@ from ._version import __version__
 from .config import Config, apply_overrides, preset as make_preset
 from .errors import InputError
 from .extraction import extract_mesh, mesh_quality
+from .fields.base import Field
 from .geometry.normalize import Normalizer
 from .geometry.voxel import voxel_downsample, voxel_downsample_with
 from .io import save_json, save_mesh, validate_points
@@ -51,6 +52,10 @@ class Reconstruction:
     input: dict[str, Any] = field(default_factory=dict)
     method_info: dict[str, Any] = field(default_factory=dict)
     """Choices the method resolved at run time (e.g. ``poisson_orientation``: ``tangent``/``probe``)."""
+    field: Field | None = None
+    """The trained field in unit space (``None`` for methods that give a mesh directly): extract it
+    again with another ``ExtractConfig`` (:func:`ultraboneudf.extraction.extract_mesh`) and map the
+    result back with ``normalizer.inverse_mesh`` to compare extractors without retraining."""
     version: str = __version__
 
     def sidecar(self) -> dict[str, Any]:
@@ -253,7 +258,8 @@ def _finish(fitted: Fitted, unit: _UnitCloud, cfg: Config, dev: torch.device, pr
     quality = mesh_quality(mesh) if mesh is not None else {}
     return Reconstruction(mesh=mesh, method=method, preset=preset, config=cfg, timings=timings,
                           counts=counts, quality=quality, device=str(dev), seed=seed,
-                          normalizer=unit.normalizer, history=fitted.history, method_info=fitted.info)
+                          normalizer=unit.normalizer, history=fitted.history, method_info=fitted.info,
+                          field=fitted.field)
 
 
 def _validate_probe(probe_positions: Any, n_points: int, source: str) -> np.ndarray | None:
