@@ -47,7 +47,6 @@ def run_one(args: argparse.Namespace) -> list[dict]:
     import torch
 
     import ultraboneudf
-    from ultraboneudf.evaluation import evaluate
 
     torch.set_num_threads(args.threads or torch.get_num_threads())
     points, truth = make_input(args.input)
@@ -70,9 +69,7 @@ def run_one(args: argparse.Namespace) -> list[dict]:
         row.update(cd_mm=None, hd95_mm=None, failed=True)
     else:
         row["nonmanifold_edges"] = rec.quality.get("nonmanifold_edges")
-        res = evaluate(rec.mesh, truth, samples=args.samples, seed=0)
-        row.update(cd_mm=round(res.cd_mm, 4), hd95_mm=round(res.hd95_mm, 4),
-                   area_ratio=round(float(rec.mesh.area / truth.area), 3))
+        row.update(score(rec.mesh, truth, args.samples))
         with tempfile.TemporaryDirectory() as tmp:
             target = Path(args.save) if args.save else Path(tmp) / "mesh.ply"
             target.parent.mkdir(parents=True, exist_ok=True)
@@ -90,7 +87,6 @@ def reextract(rec, truth, spec: str, samples: int) -> dict:
     """The same trained field extracted again as ``mode@depth`` (issue #8: modes side by side)."""
     import copy
 
-    from ultraboneudf.evaluation import evaluate
     from ultraboneudf.extraction import extract_mesh, mesh_quality
 
     mode, depth = spec.split("@")
@@ -103,12 +99,17 @@ def reextract(rec, truth, spec: str, samples: int) -> dict:
     if unit_mesh is None or len(unit_mesh.faces) == 0:
         return {**row, "cd_mm": None, "hd95_mm": None, "failed": True}
     mesh = rec.normalizer.inverse_mesh(unit_mesh)
+    return {**row, "faces": len(mesh.faces), **score(mesh, truth, samples),
+            "nonmanifold_edges": mesh_quality(mesh).get("nonmanifold_edges")}
+
+
+def score(mesh, truth, samples: int) -> dict:
+    """CD, HD95 (mm) and area ratio of ``mesh`` against ``truth``."""
+    from ultraboneudf.evaluation import evaluate
+
     res = evaluate(mesh, truth, samples=samples, seed=0)
-    quality = mesh_quality(mesh)
-    return {**row, "faces": len(mesh.faces), "cd_mm": round(res.cd_mm, 4), "hd95_mm": round(res.hd95_mm, 4),
-            "area_ratio": round(float(mesh.area / truth.area), 3),
-            "nonmanifold_edges": quality.get("nonmanifold_edges")}
-    return row
+    return {"cd_mm": round(res.cd_mm, 4), "hd95_mm": round(res.hd95_mm, 4),
+            "area_ratio": round(float(mesh.area / truth.area), 3)}
 
 
 def print_table(rows: list[dict]) -> None:
