@@ -76,7 +76,8 @@ def run_one(args: argparse.Namespace) -> list[dict]:
             t1 = time.perf_counter()
             rec.save(target)
             row["write_s"] = round(time.perf_counter() - t1, 3)
-    row["extract_mode"] = f"{rec.config.extract.mode}@{rec.config.extract.max_depth}"
+    e = rec.config.extract
+    row["extract_mode"] = f"{e.mode}@{e.max_depth}@{e.trim_mm:g}"
     if args.save_field and rec.field is not None:
         torch.save({"state_dict": rec.field.net.state_dict(), "config": rec.config.to_dict(),
                     "normalizer": rec.normalizer.to_dict()}, args.save_field)
@@ -84,21 +85,18 @@ def run_one(args: argparse.Namespace) -> list[dict]:
 
 
 def reextract(rec, truth, spec: str, samples: int) -> dict:
-    """The same trained field extracted again as ``mode@depth`` (issue #8: modes side by side)."""
-    import copy
+    """The same trained field extracted again as ``MODE@DEPTH`` or ``MODE@DEPTH@TRIM_MM`` (issue #8:
+    modes side by side); without a trim value the preset's ``extract.trim_mm`` applies."""
+    from ultraboneudf.extraction import mesh_quality
 
-    from ultraboneudf.extraction import extract_mesh, mesh_quality
-
-    mode, depth = spec.split("@")
-    cfg = copy.deepcopy(rec.config.extract)
-    cfg.mode, cfg.max_depth = mode, int(depth)
+    mode, depth, *trim = spec.split("@")
+    settings = {"mode": mode, "max_depth": int(depth), **({"trim_mm": float(trim[0])} if trim else {})}
     t0 = time.perf_counter()
-    unit_mesh = extract_mesh(rec.field, cfg)
+    mesh = rec.extract(**settings)
     seconds = time.perf_counter() - t0
     row = {"preset": rec.preset, "device": rec.device, "extract_mode": spec, "extract_s": round(seconds, 2)}
-    if unit_mesh is None or len(unit_mesh.faces) == 0:
+    if mesh is None or len(mesh.faces) == 0:
         return {**row, "cd_mm": None, "hd95_mm": None, "failed": True}
-    mesh = rec.normalizer.inverse_mesh(unit_mesh)
     return {**row, "faces": len(mesh.faces), **score(mesh, truth, samples),
             "nonmanifold_edges": mesh_quality(mesh).get("nonmanifold_edges")}
 
@@ -151,7 +149,8 @@ def main() -> None:
     p.add_argument("--save", default=None, help="(single run) write the mesh and sidecar here")
     p.add_argument("--save-field", default=None, help="(single run) torch.save the trained network here")
     p.add_argument("--reextract", action="append", default=[], metavar="MODE@DEPTH",
-                   help="also extract the same field as e.g. clean@8 or faithful@9 (repeatable)")
+                   help="also extract the same field as e.g. clean@8, faithful@9 or faithful@9@0 "
+                        "(the last number: extract.trim_mm; repeatable)")
     p.add_argument("--verbose", action="store_true", help="show progress bars")
     p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--preset", help=argparse.SUPPRESS)

@@ -89,17 +89,31 @@ def test_loss_decreases(small_run):
 def test_trained_field_can_be_extracted_again(small_run):
     """``Reconstruction.field`` is the unit-space field the mesh came from: extracting it again with
     the run's own settings gives the same mesh (mm), and it is small on the input points."""
-    import copy
-
     import torch
 
-    from ultraboneudf.extraction import extract_mesh
-
     rec = small_run
-    again = rec.normalizer.inverse_mesh(extract_mesh(rec.field, copy.deepcopy(rec.config.extract)))
+    again = rec.extract()
     np.testing.assert_allclose(again.vertices, rec.mesh.vertices, atol=1e-9)
     np.testing.assert_array_equal(again.faces, rec.mesh.faces)
     unit = torch.as_tensor(rec.normalizer.forward(patch_points(500, seed=9)), dtype=torch.float32)
     u = rec.field.value(unit)
     # the field's zero set lies on the patch: u at fresh surface samples is under one leaf cell
     assert float(u.abs().median()) < 2 / 2**7, float(u.abs().median())
+
+
+def test_support_trim_keeps_only_faces_near_the_data(small_run):
+    """``extract.trim_mm`` (3 mm in ``fast``) drops exactly the faces whose mean vertex distance to
+    the voxelised input is ≥ 3 mm: every kept face is closer, the untrimmed extraction has the
+    removed faces on top, and the sidecar counts them."""
+    from scipy.spatial import cKDTree
+
+    rec = small_run
+    assert rec.config.extract.trim_mm == 3.0
+    untrimmed = rec.extract(trim_mm=0)
+    support_mm = rec.normalizer.inverse(rec.support)  # the voxelised input (0.1 mm voxels)
+    assert cKDTree(patch_points()).query(support_mm)[0].max() < 0.1
+    tree = cKDTree(support_mm)
+    kept = tree.query(rec.mesh.vertices)[0][rec.mesh.faces].mean(axis=1)
+    assert kept.max() < 3.0 + 1e-6, kept.max()
+    dropped = tree.query(untrimmed.vertices)[0][untrimmed.faces].mean(axis=1) >= 3.0
+    assert len(untrimmed.faces) - len(rec.mesh.faces) == rec.counts["trimmed_faces"] == dropped.sum()

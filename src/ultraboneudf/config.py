@@ -211,6 +211,12 @@ class ExtractConfig:
     """``eps-shell``: project the vertices onto the zero set with ``v ← v − u·ĝ``."""
     far: float = -1.0
     """``capudf_mc``: drop faces whose mean vertex distance to the surface points is ≥ this; ≤ 0 = off."""
+    trim_mm: float = 0.0
+    """Support trim, after any extractor and for every method: drop the faces whose mean vertex
+    distance to the nearest pre-processed input point (the voxelised cloud) is ≥ this many mm;
+    0 = off (the reference). It removes zero sets the field keeps away from the data (a sheet
+    continued past the rim of an open surface, remnants of the initial sphere); a gap in the data
+    wider than about twice this value opens as a hole."""
     clean_crossing: float = 0.5
     """Clean mode: a leaf-lattice edge whose end gradients oppose counts as crossed only if the UDF
     at the estimated crossing is below ``clean_crossing × leaf edge + margin``."""
@@ -268,6 +274,7 @@ def _paper() -> Config:
     # 256 cells across the object (depth 9 on [−1, 1]³) with the official DMU thresholds (§1.11).
     cfg.extract = ExtractConfig(**{**DMU_DEFAULTS, "max_depth": 9})
     cfg.extract.mode = "clean"  # one-layer, edge-manifold mesh (issue #8); "faithful" reproduces DMU
+    cfg.extract.trim_mm = 3.0   # no surface > 3 mm from the data (README, "Support trim")
     return cfg
 
 
@@ -302,6 +309,7 @@ def _fast() -> Config:
     cfg.train.lr = 2e-3
     cfg.extract.max_depth = 8
     cfg.extract.mode = "clean"
+    cfg.extract.trim_mm = 3.0
     return cfg
 
 

@@ -7,6 +7,7 @@ positions (from a tracked sweep) follow the points through voxelisation and the 
 
 from __future__ import annotations
 
+import dataclasses
 import random
 import time
 from dataclasses import dataclass, field
@@ -20,7 +21,7 @@ import trimesh
 from ._version import __version__
 from .config import Config, apply_overrides, preset as make_preset
 from .errors import InputError
-from .extraction import extract_mesh, mesh_quality
+from .extraction import extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
 from .geometry.normalize import Normalizer
 from .geometry.voxel import voxel_downsample, voxel_downsample_with
@@ -53,10 +54,25 @@ class Reconstruction:
     method_info: dict[str, Any] = field(default_factory=dict)
     """Choices the method resolved at run time (e.g. ``poisson_orientation``: ``tangent``/``probe``)."""
     field: Field | None = None
-    """The trained field in unit space (``None`` for methods that give a mesh directly): extract it
-    again with another ``ExtractConfig`` (:func:`ultraboneudf.extraction.extract_mesh`) and map the
-    result back with ``normalizer.inverse_mesh`` to compare extractors without retraining."""
+    """The trained field in unit space (``None`` for methods that give a mesh directly);
+    :meth:`extract` extracts it again with other settings without retraining."""
+    support: np.ndarray | None = dataclasses.field(default=None, repr=False)
+    """The pre-processed (voxelised) cloud in unit space, (M, 3): what the support trim
+    (``extract.trim_mm``) measures distances to."""
+    extract_inputs: dict[str, np.ndarray | None] = dataclasses.field(default_factory=dict, repr=False)
+    """The method's ``surface`` and ``normals`` (unit space) that the grid extractors use."""
     version: str = __version__
+
+    def extract(self, **settings: Any) -> trimesh.Trimesh | None:
+        """The trained field extracted again, in mm, with ``settings`` replacing fields of
+        ``config.extract`` (e.g. ``mode="faithful", max_depth=9, trim_mm=0``); the support trim
+        applies as in :func:`reconstruct`. ``None`` when no surface is found."""
+        if self.field is None:
+            raise RuntimeError(f"method {self.method!r} gives a mesh directly; there is no field to extract")
+        cfg = dataclasses.replace(self.config.extract, **settings)
+        unit_mesh = extract_mesh(self.field, cfg, **self.extract_inputs)
+        mesh, _ = _trim_and_map(unit_mesh, self.support, self.normalizer, cfg.trim_mm)
+        return mesh
 
     def sidecar(self) -> dict[str, Any]:
         """The JSON sidecar (DESIGN.md): everything needed to trace the mesh to its configuration."""
@@ -241,7 +257,7 @@ def _finish(fitted: Fitted, unit: _UnitCloud, cfg: Config, dev: torch.device, pr
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
     extract_s = time.perf_counter() - t1
-    mesh = unit.normalizer.inverse_mesh(unit_mesh) if unit_mesh is not None else None
+    mesh, trimmed = _trim_and_map(unit_mesh, unit.points, unit.normalizer, cfg.extract.trim_mm)
 
     timings = {
         "preprocess_s": unit.voxel_s + fitted.timings.get("preprocess_s", 0.0),
@@ -254,12 +270,24 @@ def _finish(fitted: Fitted, unit: _UnitCloud, cfg: Config, dev: torch.device, pr
     timings["total_s"] = time.perf_counter() - t_start
     counts = {"input_points": unit.input_points, "voxelized_points": len(unit.points), **fitted.counts,
               "vertices": 0 if mesh is None else len(mesh.vertices),
-              "faces": 0 if mesh is None else len(mesh.faces)}
+              "faces": 0 if mesh is None else len(mesh.faces), "trimmed_faces": trimmed}
     quality = mesh_quality(mesh) if mesh is not None else {}
     return Reconstruction(mesh=mesh, method=method, preset=preset, config=cfg, timings=timings,
                           counts=counts, quality=quality, device=str(dev), seed=seed,
                           normalizer=unit.normalizer, history=fitted.history, method_info=fitted.info,
-                          field=fitted.field)
+                          field=fitted.field, support=unit.points,
+                          extract_inputs={"surface": fitted.surface, "normals": fitted.normals})
+
+
+def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray, normalizer: Normalizer,
+                  trim_mm: float) -> tuple[trimesh.Trimesh | None, int]:
+    """The support trim (``extract.trim_mm``, against the unit-space ``support`` cloud), then the one
+    map back to mm. Returns the mesh in mm (``None`` when nothing is left) and the faces removed."""
+    if unit_mesh is None:
+        return None, 0
+    trimmed = trim_to_support(unit_mesh, support, trim_mm / normalizer.scale)
+    removed = len(unit_mesh.faces) - (0 if trimmed is None else len(trimmed.faces))
+    return (None if trimmed is None else normalizer.inverse_mesh(trimmed)), removed
 
 
 def _validate_probe(probe_positions: Any, n_points: int, source: str) -> np.ndarray | None:

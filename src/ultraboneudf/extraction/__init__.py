@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 import trimesh
-from scipy.spatial import cKDTree
 
 from ..config import ExtractConfig
 from ..errors import InputError
@@ -21,6 +20,7 @@ from .clean import clean_udf_mesh
 from .marching import (capudf_marching_cubes, sdf_marching_cubes, udf_to_sdf_marching_cubes)
 from .dualmesh import CORNER, EDGE, PLANE, TYPE_NAMES, band_threshold, dualmesh_udf
 from .quality import mesh_quality
+from .trim import trim_to_support
 
 MODES = ("faithful", "clean", "capudf_mc", "sdf_mc", "udf2sdf")
 
@@ -35,20 +35,6 @@ def _grid_box(cfg: ExtractConfig, surface: np.ndarray | None) -> tuple[np.ndarra
                              "(use --set extract.grid_box=domain)")
         return surface.min(axis=0) - cfg.box_margin, surface.max(axis=0) + cfg.box_margin
     raise InputError(f"unknown extract.grid_box {cfg.grid_box!r}; choose domain or surface")
-
-
-def _trim_far(mesh: trimesh.Trimesh | None, surface: np.ndarray | None, far: float) -> trimesh.Trimesh | None:
-    """CAP-UDF ``far`` trimming (§3.5 step 6): drop faces whose mean vertex distance to ``surface``
-    is ≥ ``far``, then unreferenced vertices."""
-    if mesh is None or far <= 0 or surface is None:
-        return mesh
-    dist, _ = cKDTree(surface).query(mesh.vertices, k=1, workers=-1)
-    keep = dist[mesh.faces].mean(axis=1) < far
-    if not keep.any():
-        return None
-    out = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
-    out.remove_unreferenced_vertices()
-    return out
 
 
 def extract_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET, *,
@@ -68,7 +54,7 @@ def extract_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET, *
     if cfg.mode == "capudf_mc":
         lo, hi = _grid_box(cfg, surface)
         mesh = capudf_marching_cubes(field, lo, hi, cfg.resolution, cfg.cell_threshold, cfg.batch, progress)
-        return _trim_far(mesh, surface, cfg.far)
+        return mesh if surface is None else trim_to_support(mesh, surface, cfg.far)
     if cfg.mode == "sdf_mc":
         return sdf_marching_cubes(field, cfg.resolution, tuple(cfg.domain), cfg.batch, progress)
     if cfg.mode == "udf2sdf":
@@ -79,5 +65,5 @@ def extract_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET, *
 
 
 __all__ = ["extract_mesh", "dualmesh_udf", "clean_udf_mesh", "capudf_marching_cubes", "sdf_marching_cubes",
-           "udf_to_sdf_marching_cubes", "mesh_quality", "band_threshold", "MODES",
+           "udf_to_sdf_marching_cubes", "mesh_quality", "trim_to_support", "band_threshold", "MODES",
            "CORNER", "EDGE", "PLANE", "TYPE_NAMES"]

@@ -1,0 +1,33 @@
+"""Support trim: drop the faces of a mesh that lie away from the points it was built from.
+
+A neural UDF can keep zero sets where no data constrains it: the tangent loss (§1.6) is satisfied
+by a sheet continued in its own tangent plane past the rim of an open surface, and remnants of the
+initial sphere survive where neither anchors nor grid queries reach (on the open femur, a bulb of
+~50 mm beyond one epiphysis: 5% of the mesh area more than 40 mm from the truth). Such faces are far
+from every input point, so a distance test removes them without touching the surface the data
+supports. CAP-UDF's ``far`` trimming (§3.5 step 6) is the same rule.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+
+def trim_to_support(mesh: trimesh.Trimesh | None, support: np.ndarray, max_distance: float
+                    ) -> trimesh.Trimesh | None:
+    """``mesh`` without the faces whose mean vertex distance to the nearest row of ``support``
+    (N, 3) is ≥ ``max_distance`` (same units as the mesh), and without the vertices no face uses
+    any more. ``max_distance ≤ 0`` returns ``mesh`` unchanged; ``None`` when no face is left."""
+    if mesh is None or max_distance <= 0:
+        return mesh
+    dist, _ = cKDTree(support).query(mesh.vertices, k=1, workers=-1)
+    keep = dist[mesh.faces].mean(axis=1) < max_distance
+    if keep.all():
+        return mesh
+    if not keep.any():
+        return None
+    out = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
+    out.remove_unreferenced_vertices()
+    return out

@@ -1,0 +1,48 @@
+"""The support trim (``extract.trim_mm``) on an analytic mesh: a plane larger than its data."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from ultraboneudf.extraction import trim_to_support
+
+
+def plane(n=81, half=1.0):
+    """The square [−half, half]² at z = 0 as a triangle grid."""
+    a = np.linspace(-half, half, n)
+    xx, yy = np.meshgrid(a, a, indexing="ij")
+    v = np.c_[xx.ravel(), yy.ravel(), np.zeros(n * n)]
+    idx = np.arange(n * n).reshape(n, n)
+    q = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return trimesh.Trimesh(v, np.r_[np.c_[q[0], q[1], q[2]], np.c_[q[0], q[2], q[3]]], process=False)
+
+
+@pytest.fixture
+def disc_support():
+    """Points densely covering the disc of radius 0.5 in the plane z = 0."""
+    rng = np.random.default_rng(0)
+    r, t = 0.5 * np.sqrt(rng.uniform(0, 1, 20_000)), rng.uniform(0, 2 * np.pi, 20_000)
+    return np.c_[r * np.cos(t), r * np.sin(t), np.zeros_like(r)]
+
+
+def test_trim_leaves_the_disc_grown_by_the_distance(disc_support):
+    """Faces within 0.1 of a disc of radius 0.5 remain: area ≈ π·0.6² (grid cell 0.025), every kept
+    face's mean vertex distance < 0.1, every vertex referenced."""
+    mesh = plane()
+    out = trim_to_support(mesh, disc_support, 0.1)
+    assert out.area == pytest.approx(np.pi * 0.6**2, rel=0.03)
+    centre_r = np.linalg.norm(out.vertices[out.faces].mean(axis=1)[:, :2], axis=1)
+    assert centre_r.max() < 0.6 + 0.025
+    assert len(np.unique(out.faces)) == len(out.vertices)
+
+
+def test_trim_off_or_nothing_to_remove_returns_the_mesh(disc_support):
+    mesh = plane(half=0.3)
+    assert trim_to_support(mesh, disc_support, 0.0) is mesh
+    assert trim_to_support(mesh, disc_support, 0.1) is mesh
+
+
+def test_trim_of_a_mesh_far_from_all_data_gives_none(disc_support):
+    far = plane(half=0.2)
+    far.vertices[:, 2] += 5.0
+    assert trim_to_support(far, disc_support, 0.1) is None
