@@ -35,7 +35,11 @@ def test_evaluate_json_has_exactly_the_design_keys(files, capsys):
     assert list(data) == list(JSON_KEYS)
     assert data["cd_mm"] == pytest.approx(1.0, abs=0.05) and data["samples"] == 20000
     assert data["pseudo_gt_mm"] is None
-    assert "CD" in capsys.readouterr().out
+    out_text = capsys.readouterr().out
+    assert "CD" in out_text
+    # mesh quality of the 1.1× sphere: 1.21× the area, closed, one component, edge-manifold
+    assert ("(1.210× the ground-truth mesh), 1 components, 0 boundary edges (0 loops), "
+            "0 non-manifold edges, 0 duplicate faces") in out_text
 
 
 def test_evaluate_with_pseudo_ground_truth(files):

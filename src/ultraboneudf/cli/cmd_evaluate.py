@@ -40,6 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..evaluation.cmd_support import load_optional_mesh
     from ..evaluation.metrics import evaluate
+    from ..extraction.quality import mesh_quality
 
     if args.samples < 1:
         raise InputError(f"--samples: must be at least 1, got {args.samples}")
@@ -68,4 +69,8 @@ def run(args: argparse.Namespace) -> int:
           f"mean of directed P95 {result.hd95_mean_mm:.4f} mm")
     print(f"samples {result.samples:,} per surface, {result.samples_gt:,} ground-truth samples kept "
           f"({tau}), seed {result.seed}, {result.timings.get('total_s', 0.0):.1f} s on {result.device}")
+    q = mesh_quality(recon)
+    print(f"mesh  area {q['area']:.1f} mm² ({q['area'] / gt.area:.3f}× the ground-truth mesh), "
+          f"{q['components']} components, {q['boundary_edges']} boundary edges ({q['boundary_loops']} loops), "
+          f"{q['nonmanifold_edges']} non-manifold edges, {q['duplicate_faces']} duplicate faces")
     return 0
