@@ -226,6 +226,7 @@ def _vertices(field: Field, cfg: ExtractConfig, samples: LeafSamples, ijk: torch
     acc.index_add_(0, flat, cross_x.repeat_interleave(4, 0))
     cnt.index_add_(0, flat, torch.ones_like(flat, dtype=torch.float64))
     x = acc / cnt[:, None]
+    from_qef = torch.zeros(n, dtype=torch.bool, device=cells.device)
     if cfg.clean_vertex == "qef":
         leaf, is_leaf = lookup_cells(pack(ijk, lat.cell_bits), cells, lat.depth)
         rows = is_leaf.nonzero().squeeze(1)
@@ -234,9 +235,24 @@ def _vertices(field: Field, cfg: ExtractConfig, samples: LeafSamples, ijk: torch
         window = cfg.clean_qef_window * h
         near = verts.has & ((verts.position > lo - window) & (verts.position < hi + window)).all(1)
         x[rows[near]] = verts.position[near]
+        from_qef[rows[near]] = True
     elif cfg.clean_vertex != "mass":
         raise InputError(f"unknown clean_vertex {cfg.clean_vertex!r}; choose qef or mass")
-    return _project(field, cfg, x, h, cfg.clean_project_steps)
+    # A QEF vertex on the open rim stays where the QEF put it (on the rim): projecting it pulls it
+    # inward wherever a trained field's rim is rounded (measured on the open femur, `fast` field:
+    # clean CD 0.49 → 0.38 mm, area 0.93 → 0.98 of the truth).
+    moved = (~(from_qef & _rim_vertices(local, n))).nonzero().squeeze(1)
+    x[moved] = _project(field, cfg, x[moved], h, cfg.clean_project_steps)
+    return x
+
+
+def _rim_vertices(quads: torch.Tensor, n: int) -> torch.Tensor:
+    """(n,) bool: vertices on an edge used by only one of the quads (Q, 4) (cyclic vertex order)."""
+    edges = torch.stack([quads, quads.roll(-1, dims=1)], -1).reshape(-1, 2).sort(dim=1).values
+    uniq, count = torch.unique(edges, dim=0, return_counts=True)
+    rim = torch.zeros(n, dtype=torch.bool, device=quads.device)
+    rim[uniq[count == 1].reshape(-1)] = True
+    return rim
 
 
 def _snap_to_domain(field: Field, cfg: ExtractConfig, x: torch.Tensor, cells: torch.Tensor,
