@@ -248,10 +248,11 @@ def _vertices(field: Field, cfg: ExtractConfig, samples: LeafSamples, ijk: torch
 
 def _rim_vertices(quads: torch.Tensor, n: int) -> torch.Tensor:
     """(n,) bool: vertices on an edge used by only one of the quads (Q, 4) (cyclic vertex order)."""
-    edges = torch.stack([quads, quads.roll(-1, dims=1)], -1).reshape(-1, 2).sort(dim=1).values
-    uniq, count = torch.unique(edges, dim=0, return_counts=True)
+    eid, _ = _edge_face_incidence(quads, n)
+    once = (torch.bincount(eid)[eid] == 1).reshape(quads.shape)  # per (quad, corner) half-edge
     rim = torch.zeros(n, dtype=torch.bool, device=quads.device)
-    rim[uniq[count == 1].reshape(-1)] = True
+    rim[quads[once]] = True
+    rim[quads.roll(-1, dims=1)[once]] = True
     return rim
 
 
@@ -318,12 +319,13 @@ def _drop_bad_faces(pos: torch.Tensor, faces: torch.Tensor, h: float) -> torch.T
 
 
 def _edge_face_incidence(faces: torch.Tensor, n_vertices: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """For each (face, corner) half-edge: the id (3F,) of its undirected edge and the face (3F,)."""
+    """For each (face, corner) half-edge of the polygons ``faces`` (F, k) (cyclic vertex order): the
+    id (kF,) of its undirected edge and the face (kF,)."""
     e = torch.stack([faces, faces.roll(-1, 1)], -1).reshape(-1, 2)
     e = torch.sort(e, 1).values
     key = e[:, 0] * n_vertices + e[:, 1]
     _, eid = torch.unique(key, return_inverse=True)
-    face = torch.arange(faces.shape[0], device=faces.device).repeat_interleave(3)
+    face = torch.arange(faces.shape[0], device=faces.device).repeat_interleave(faces.shape[1])
     return eid, face
 
 
