@@ -33,11 +33,17 @@ def test_version_and_help():
         assert out.returncode == 0 and "--preset" in out.stdout
 
 
-def test_reconstruct_writes_mesh_and_sidecar(tmp_path):
+def test_reconstruct_writes_mesh_and_sidecar(tmp_path, capsys):
     src = _cloud(tmp_path / "in.xyz")
     before = src.read_bytes()
     assert main(["reconstruct", str(src), "-o", str(tmp_path / "out.ply"), "--preset", "fast", *SMALL]) == 0
     side = json.loads((tmp_path / "out.json").read_text())
+    # 300 steps stop short of the open edges: the self-check warns about the input the mesh misses,
+    # even with --quiet, and only about what the sidecar's data_fit shows
+    fit, err = side["data_fit"], capsys.readouterr().err.splitlines()
+    assert fit["input_far_fraction"] > 0.01 and fit["mesh_far_area_fraction"] == 0.0
+    assert len(err) == 1 and err[0].startswith("ultraboneudf reconstruct: warning: ")
+    assert f"{100 * fit['input_far_fraction']:.1f}% of the input points" in err[0]
     assert side["counts"]["parameters"] == 64 * 5 + 64 * 66 * 2 + 66
     assert side["config"]["train"]["iters"] == 300 and side["preset"] == "fast"
     assert side["input"]["path"].endswith("in.xyz") and len(side["input"]["sha256"]) == 64

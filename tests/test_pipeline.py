@@ -1,8 +1,11 @@
 """End-to-end reconstruction on a small analytic open surface, on the CPU."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
 import ultraboneudf
 from ultraboneudf.evaluation import evaluate
@@ -57,8 +60,18 @@ def test_sidecar_contents(small_run, tmp_path):
     rec = small_run
     sidecar = rec.sidecar()
     for key in ("method", "preset", "config", "timings", "counts", "device", "seed", "version", "input",
-                "mesh_quality"):
+                "mesh_quality", "data_fit"):
         assert key in sidecar
+    # the 3 mm support trim leaves no face ≥ 3 mm (the self-check's distance) from the data
+    fit = sidecar["data_fit"]
+    assert fit["threshold_mm"] == rec.config.extract.fit_mm == 3.0
+    assert fit["mesh_far_area_fraction"] == 0.0
+    # the input's uncovered fraction (the short run stops short of the open edges) agrees with the
+    # input's distances in mm to 10× denser mesh samples: the check sees mesh and data in one frame
+    dense, _ = trimesh.sample.sample_surface(rec.mesh, 1_000_000, seed=5)
+    exact, _ = cKDTree(dense).query(patch_points())
+    assert fit["input_far_fraction"] == pytest.approx((exact > 3.0).mean(), abs=0.02)
+    assert fit["input_p95_mm"] == pytest.approx(np.percentile(exact, 95), abs=0.3)
     # the fast preset extracts in clean mode: one layer, no edge shared by more than two faces
     quality = sidecar["mesh_quality"]
     assert quality["nonmanifold_edges"] == 0 and quality["duplicate_faces"] == 0
@@ -73,6 +86,18 @@ def test_sidecar_contents(small_run, tmp_path):
     assert ultraboneudf.Config.from_dict(sidecar["config"]) == rec.config
     rec.save(tmp_path / "m.obj")
     assert (tmp_path / "m.obj").exists() and (tmp_path / "m.json").exists()
+
+
+def test_fit_warnings_name_what_is_missing_or_unsupported(small_run):
+    rec = small_run
+    assert rec.fit_warnings(limit=1.0) == []
+    bad = dataclasses.replace(rec, data_fit={"threshold_mm": 3.0, "input_far_fraction": 0.097,
+                                             "input_p95_mm": 37.0, "mesh_far_area_fraction": 0.21})
+    missing, unsupported = bad.fit_warnings()
+    assert missing.startswith("9.7% of the input points are more than 3 mm from the mesh")
+    assert unsupported.startswith("21.0% of the mesh area is 3 mm or more from every input point")
+    assert "extract.trim_mm=3" in unsupported
+    assert dataclasses.replace(rec, data_fit={}).fit_warnings() == []
 
 
 def test_same_seed_same_mesh_on_cpu(small_run):

@@ -217,6 +217,10 @@ class ExtractConfig:
     0 = off (the reference). It removes zero sets the field keeps away from the data (a sheet
     continued past the rim of an open surface, remnants of the initial sphere); a gap in the data
     wider than about twice this value opens as a hole."""
+    fit_mm: float = 3.0
+    """Data-fit self-check (sidecar ``data_fit``, a warning from the CLI): the fraction of input
+    points farther than this many mm from the mesh, and of mesh area this far from every input point;
+    0 = off. It measures, never changes, the mesh."""
     clean_crossing: float = 0.5
     """Clean mode: a leaf-lattice edge whose end gradients oppose counts as crossed only if the UDF
     at the estimated crossing is below ``clean_crossing × leaf edge + margin``."""

@@ -21,7 +21,7 @@ import trimesh
 from ._version import __version__
 from .config import Config, apply_overrides, preset as make_preset
 from .errors import InputError
-from .extraction import extract_mesh, mesh_quality, trim_to_support
+from .extraction import data_fit, extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
 from .geometry.normalize import Normalizer
 from .geometry.voxel import voxel_downsample, voxel_downsample_with
@@ -46,6 +46,8 @@ class Reconstruction:
     timings: dict[str, float]
     counts: dict[str, int]
     quality: dict[str, float]
+    data_fit: dict[str, float]
+    """The mesh against its own input (``extraction.data_fit``, ``extract.fit_mm``); empty when off."""
     device: str
     seed: int
     normalizer: Normalizer
@@ -83,6 +85,7 @@ class Reconstruction:
             "timings": {k: round(v, 4) for k, v in self.timings.items()},
             "counts": self.counts,
             "mesh_quality": self.quality,
+            "data_fit": self.data_fit,
             "device": self.device,
             "seed": self.seed,
             "version": self.version,
@@ -91,6 +94,23 @@ class Reconstruction:
             "normalization": self.normalizer.to_dict(),
             "loss_history": self.history,
         }
+
+    def fit_warnings(self, limit: float = 0.01) -> list[str]:
+        """One sentence per ``data_fit`` figure above ``limit`` (a fraction): input the mesh does not
+        reach, or mesh area far from every input point. Empty when the mesh fits its input."""
+        fit, out = self.data_fit, []
+        if not fit:
+            return out
+        t = fit["threshold_mm"]
+        if fit["input_far_fraction"] > limit:
+            out.append(f"{100 * fit['input_far_fraction']:.1f}% of the input points are more than {t:g} mm "
+                       "from the mesh: the surface is missing there (the field did not fit, or the data "
+                       "is an outlier); try another --seed or --preset")
+        if fit["mesh_far_area_fraction"] > limit:
+            out.append(f"{100 * fit['mesh_far_area_fraction']:.1f}% of the mesh area is {t:g} mm or more "
+                       "from every input point: surface the data does not support; "
+                       f"--set extract.trim_mm={t:g} removes it")
+        return out
 
     def save(self, path: str | Path) -> Path:
         """Write the mesh (format by suffix) and the sidecar ``path.with_suffix('.json')``, atomically.
@@ -258,12 +278,17 @@ def _finish(fitted: Fitted, unit: _UnitCloud, cfg: Config, dev: torch.device, pr
         torch.cuda.synchronize(dev)
     extract_s = time.perf_counter() - t1
     mesh, trimmed = _trim_and_map(unit_mesh, unit.points, unit.normalizer, cfg.extract.trim_mm)
+    t2 = time.perf_counter()
+    fit = (data_fit(mesh, unit.normalizer.inverse(unit.points), cfg.extract.fit_mm)
+           if mesh is not None and cfg.extract.fit_mm > 0 else {})
+    fit_s = time.perf_counter() - t2
 
     timings = {
         "preprocess_s": unit.voxel_s + fitted.timings.get("preprocess_s", 0.0),
         "train_s": fitted.timings.get("train_s", 0.0),
         "extract_s": extract_s,
         "voxel_s": unit.voxel_s,
+        "fit_s": fit_s,
         # the method's own pre-processing steps (e.g. subset_s, sigma_s, static_nn_s)
         **{k: v for k, v in fitted.timings.items() if k not in ("preprocess_s", "train_s")},
     }
@@ -273,7 +298,7 @@ def _finish(fitted: Fitted, unit: _UnitCloud, cfg: Config, dev: torch.device, pr
               "faces": 0 if mesh is None else len(mesh.faces), "trimmed_faces": trimmed}
     quality = mesh_quality(mesh) if mesh is not None else {}
     return Reconstruction(mesh=mesh, method=method, preset=preset, config=cfg, timings=timings,
-                          counts=counts, quality=quality, device=str(dev), seed=seed,
+                          counts=counts, quality=quality, data_fit=fit, device=str(dev), seed=seed,
                           normalizer=unit.normalizer, history=fitted.history, method_info=fitted.info,
                           field=fitted.field, support=unit.points,
                           extract_inputs={"surface": fitted.surface, "normals": fitted.normals})
