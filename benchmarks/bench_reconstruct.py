@@ -69,6 +69,9 @@ def run_one(args: argparse.Namespace) -> list[dict]:
         row.update(cd_mm=None, hd95_mm=None, failed=True)
     else:
         row["nonmanifold_edges"] = rec.quality.get("nonmanifold_edges")
+        # the self-check without ground truth, next to the truth-based figures it should agree with
+        row["input_far"] = round(rec.data_fit.get("input_far_fraction", float("nan")), 4)
+        row["mesh_far_area"] = round(rec.data_fit.get("mesh_far_area_fraction", float("nan")), 4)
         row.update(score(rec.mesh, truth, args.samples))
         with tempfile.TemporaryDirectory() as tmp:
             target = Path(args.save) if args.save else Path(tmp) / "mesh.ply"
@@ -113,7 +116,7 @@ def score(mesh, truth, samples: int) -> dict:
 def print_table(rows: list[dict]) -> None:
     cols = ["preset", "device", "extract_mode", "iters", "preprocess_s", "train_s", "extract_s", "total_s",
             "it_per_s", "peak_host_mb", "peak_gpu_mb", "faces", "area_ratio", "nonmanifold_edges", "cd_mm",
-            "hd95_mm"]
+            "hd95_mm", "input_far", "mesh_far_area"]
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for r in rows:
