@@ -104,8 +104,8 @@ class Reconstruction:
         t = fit["threshold_mm"]
         if fit["input_far_fraction"] > limit:
             out.append(f"{100 * fit['input_far_fraction']:.1f}% of the input points are more than {t:g} mm "
-                       "from the mesh: the surface is missing there (the field did not fit, or the data "
-                       "is an outlier); try another --seed or --preset")
+                       "from the mesh (the field did not fit there, the mesh stops short of the data's "
+                       "rim, or the points are outliers); try another --seed or --preset")
         if fit["mesh_far_area_fraction"] > limit:
             out.append(f"{100 * fit['mesh_far_area_fraction']:.1f}% of the mesh area is {t:g} mm or more "
                        "from every input point: surface the data does not support; "
