@@ -78,15 +78,17 @@ def test_reconstruct_many_equals_reconstruct():
     for r in (20.0, 25.0):   # two quarter-cylinder patches (mm)
         theta = rng.uniform(np.pi / 4, 3 * np.pi / 4, 3000)
         clouds.append(np.c_[r * np.cos(theta), rng.uniform(0, 40, 3000), r * np.sin(theta)])
-    small = {"train.iters": 400, "train.batch": 1000, "train.warmup": 50, "extract.max_depth": 7,
-             "data.max_points": 3000, "model.hidden": (64, 64, 64)}   # as tests/test_pipeline.py
+    # as tests/test_pipeline.py but extracted at depth 6 (1.25 mm cells): at depth 7 the 400-step
+    # field's mesh is perforated near the rims, and which small holes open is fp32 noise
+    small = {"train.iters": 400, "train.batch": 1000, "train.warmup": 50, "extract.max_depth": 6,
+             "data.max_points": 3000, "model.hidden": (64, 64, 64)}
     many = ultraboneudf.reconstruct_many(clouds, preset="fast", device="cpu", seed=1, **small)
     for cloud, rec in zip(clouds, many):
         alone = ultraboneudf.reconstruct(cloud, preset="fast", device="cpu", seed=1, **small)
         assert rec.mesh is not None and alone.mesh is not None
         # Step for step equal in exact arithmetic; in fp32 the batched and single matrix products
         # round differently and over 400 steps the nearest-neighbour feet amplify that, so compare
-        # the surfaces: within a third of a cell (0.78 mm here) of each other and of the same area.
+        # the surfaces: within a fifth of a cell of each other and of the same area.
         assert evaluate(rec.mesh, alone.mesh, samples=100_000, seed=0).cd_mm < 0.25
         assert abs(rec.mesh.area - alone.mesh.area) < 0.05 * alone.mesh.area
         assert rec.counts["parameters"] == alone.counts["parameters"]
