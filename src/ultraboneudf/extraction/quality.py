@@ -102,10 +102,10 @@ def data_fit(mesh: trimesh.Trimesh | None, points: np.ndarray, threshold_mm: flo
 
     Point → mesh distances are to area samples spaced about threshold/10 apart (at most 2,000,000),
     so they overestimate by at most about that spacing; the samples are seeded (deterministic). At
-    most 200,000 points are checked (every k-th row). ``None`` or an empty mesh covers nothing.
+    most 200,000 points are checked (every k-th row). ``None`` or a mesh without area covers nothing.
     """
     pts = np.asarray(points, dtype=np.float64)
-    if mesh is None or len(mesh.faces) == 0:
+    if mesh is None or len(mesh.faces) == 0 or not mesh.area > 0:
         return {"threshold_mm": float(threshold_mm), "input_far_fraction": 1.0,
                 "input_p95_mm": float("inf"), "mesh_far_area_fraction": 0.0}
     area = float(mesh.area)
@@ -119,4 +119,4 @@ def data_fit(mesh: trimesh.Trimesh | None, points: np.ndarray, threshold_mm: flo
     return {"threshold_mm": float(threshold_mm),
             "input_far_fraction": float((to_mesh > threshold_mm).mean()),
             "input_p95_mm": float(np.percentile(to_mesh, 95)),
-            "mesh_far_area_fraction": float(mesh.area_faces[far_faces].sum() / area) if area > 0 else 0.0}
+            "mesh_far_area_fraction": float(mesh.area_faces[far_faces].sum() / area)}
