@@ -81,6 +81,29 @@ def test_band_leaves_contain_every_cell_the_sphere_passes_through():
     assert torch.equal(keys, torch.unique(keys))
 
 
+class _FarOverestimate(SphereUDF):
+    """The sphere's UDF d up to 0.2, then 0.2 + 3·(d − 0.2): right near the surface, three times too
+    large far away, as a trained field can be where no query constrained it."""
+
+    def _value_and_grad(self, x):
+        d, g = super()._value_and_grad(x)
+        far = d > 0.2
+        return torch.where(far, 0.2 + 3 * (d - 0.2), d), torch.where(far[:, None], 3 * g, g)
+
+
+def test_band_start_depth_keeps_octants_an_overestimating_field_would_lose():
+    """At depth 1 every octant centre (±0.5)³ is 0.566 from the sphere of radius 0.3, the field says
+    1.30 > 0.868 (the half-diagonal): the reference test drops all eight octants and the sphere.
+    Testing from depth 3 (cells 0.25, centres near the sphere within 0.2 of it) keeps every leaf the
+    sphere passes through."""
+    field = _FarOverestimate(0.3)
+    assert dm.band_leaves(field, UBU(max_depth=5)).shape[0] == 0
+    cfg = UBU(max_depth=5, band_start_depth=3)
+    leaves = dm.band_leaves(field, cfg)
+    assert torch.equal(leaves, dm.band_leaves(SphereUDF(0.3), cfg))
+    assert torch.equal(leaves, dm.band_leaves(SphereUDF(0.3), UBU(max_depth=5)))
+
+
 # ------------------------------------------------------------------------------------ the QEF
 
 def _solve(planes, lo=(-0.5, -0.5, -0.5), hi=(0.5, 0.5, 0.5), **kw):

@@ -190,6 +190,11 @@ class ExtractConfig:
     dedup_eps: float = 1e-15
     batch: int = 150_000
     """Points per field evaluation."""
+    band_start_depth: int = 0
+    """§2.3 subdivision: octree levels shallower than this keep every cell without testing its centre
+    (0 = the reference). The test assumes u never exceeds the distance to the surface; a field that
+    overestimates far away (e.g. u = 1.11 at (±0.5, ±0.5, ±0.5) for the ``paper`` femur field, true
+    distance ≈ 0.5) otherwise drops whole octants that contain surface."""
     domain: tuple[float, float] = (-1.0, 1.0)
     """The octree cube [lo, hi]³ in unit space."""
     mode: str = "faithful"
@@ -278,6 +283,8 @@ def _paper() -> Config:
     cfg.loss.tangent_norm = "l2"
     # 256 cells across the object (depth 9 on [−1, 1]³) with the official DMU thresholds (§1.11).
     cfg.extract = ExtractConfig(**{**DMU_DEFAULTS, "max_depth": 9})
+    # Without grid queries the far field is free to overestimate; test the band from 0.125-unit cells.
+    cfg.extract.band_start_depth = 4
     cfg.extract.mode = "clean"  # one-layer, edge-manifold mesh (issue #8); "faithful" reproduces DMU
     cfg.extract.trim_mm = 3.0   # no surface > 3 mm from the data (README, "Support trim")
     cfg.extract.clean_project_steps = 0  # see _fast

@@ -147,16 +147,19 @@ def band_leaves(field: Field, cfg: ExtractConfig,
     Level by level, every active cell's centre is evaluated (one batched query) and the cell kept
     iff ``u(centre) < (√3/2)·h_d + μ``; kept cells below depth ``D`` are replaced by their 8
     children. A failed cell drops its whole subtree, so the result is exactly the reference
-    octree's leaves. Empty (0, 3) when no cell survives some level. Calls ``advance(1)`` per level.
+    octree's leaves. Levels shallower than ``cfg.band_start_depth`` keep every cell untested (0, the
+    reference, tests from the root). Empty (0, 3) when no cell survives some level. Calls
+    ``advance(1)`` per level.
     """
     lat = Lattice.from_config(cfg)
     device = torch.device(field.device)
     ijk = torch.zeros((1, 3), dtype=torch.int64, device=device)
     children = _CHILDREN.to(device)
     for d in range(lat.depth + 1):
-        centres = lat.lo + lat.cell_size(d) * (ijk.to(torch.float64) + 0.5)
-        u = field.value(centres, chunk=cfg.batch)
-        ijk = ijk[u < band_threshold(d, cfg)]  # NaN compares False: such cells are dropped
+        if d >= min(cfg.band_start_depth, lat.depth):
+            centres = lat.lo + lat.cell_size(d) * (ijk.to(torch.float64) + 0.5)
+            u = field.value(centres, chunk=cfg.batch)
+            ijk = ijk[u < band_threshold(d, cfg)]  # NaN compares False: such cells are dropped
         advance(1)
         if ijk.shape[0] == 0:
             return ijk
