@@ -13,6 +13,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from .trim import unsupported_faces
+
 _DEGENERATE_REL = 1e-10  # a face is zero-area below this × (median edge length)²
 
 
@@ -114,8 +116,7 @@ def data_fit(mesh: trimesh.Trimesh | None, points: np.ndarray, threshold_mm: flo
     samples, _ = trimesh.sample.sample_surface(mesh, count, seed=0)
     checked = pts[:: max(1, int(np.ceil(len(pts) / _FIT_MAX_POINTS)))]
     to_mesh, _ = cKDTree(samples).query(checked, k=1, workers=-1)
-    to_points, _ = cKDTree(pts).query(mesh.vertices, k=1, workers=-1)
-    far_faces = to_points[mesh.faces].mean(axis=1) >= threshold_mm
+    far_faces = unsupported_faces(mesh, pts, threshold_mm)
     return {"threshold_mm": float(threshold_mm),
             "input_far_fraction": float((to_mesh > threshold_mm).mean()),
             "input_p95_mm": float(np.percentile(to_mesh, 95)),

@@ -15,6 +15,13 @@ import trimesh
 from scipy.spatial import cKDTree
 
 
+def unsupported_faces(mesh: trimesh.Trimesh, support: np.ndarray, max_distance: float) -> np.ndarray:
+    """(F,) bool: the faces of ``mesh`` whose mean vertex distance to the nearest row of ``support``
+    (N, 3) is ≥ ``max_distance`` (same units as the mesh) — the support-trim rule."""
+    dist, _ = cKDTree(support).query(mesh.vertices, k=1, workers=-1)
+    return dist[mesh.faces].mean(axis=1) >= max_distance
+
+
 def trim_to_support(mesh: trimesh.Trimesh | None, support: np.ndarray, max_distance: float
                     ) -> trimesh.Trimesh | None:
     """``mesh`` without the faces whose mean vertex distance to the nearest row of ``support``
@@ -22,8 +29,7 @@ def trim_to_support(mesh: trimesh.Trimesh | None, support: np.ndarray, max_dista
     any more. ``max_distance ≤ 0`` returns ``mesh`` unchanged; ``None`` when no face is left."""
     if mesh is None or max_distance <= 0:
         return mesh
-    dist, _ = cKDTree(support).query(mesh.vertices, k=1, workers=-1)
-    keep = dist[mesh.faces].mean(axis=1) < max_distance
+    keep = ~unsupported_faces(mesh, support, max_distance)
     if keep.all():
         return mesh
     if not keep.any():
