@@ -176,3 +176,35 @@ def test_unknown_options_rejected():
     with pytest.raises(InputError, match="unknown simulation option"):
         config_with_noise("default", wobble=3)
     assert SimulationConfig().tracking_noise_mm > 0
+
+
+def test_hard_level_knobs_noise_false_echoes_and_missing_frames(capsule):
+    """``pred_beam_noise_mm`` scatters the predicted surface along the beam, ``pred_fp_fraction``
+    moves that fraction of the scan lines into the shadow (up to ``pred_fp_depth_mm`` deeper),
+    ``missing_runs`` drops runs of ``missing_run_mm`` of frames (the visible truth still covers them)."""
+    base = dict(pred_gap_fraction=0.0, pred_fp_per_frame=0.0, pred_jitter_px=0.0, pred_bias_px=0.0,
+                pred_thickness_px=1, n_frames=None, frame_spacing_mm=1.0)
+    clean = simulate_sweep(capsule, small("none", **base))
+    noisy = simulate_sweep(capsule, small("none", **base, pred_beam_noise_mm=0.9))
+    echo = simulate_sweep(capsule, small("none", **base, pred_fp_fraction=0.2, pred_fp_depth_mm=6.0))
+    d_clean = capsule_distance(compound(clean.sweep).points)
+    d_noisy = capsule_distance(compound(noisy.sweep).points)
+    assert np.median(d_clean) < 0.2
+    assert 0.4 < np.median(d_noisy) < 0.8       # |N(0, 0.9)| has median 0.61, rounded to 0.3 mm pixels
+    d_echo = capsule_distance(compound(echo.sweep).points)
+    far = (d_echo > 0.5).mean()
+    assert 0.12 < far < 0.2                      # 20% moved U(0, 6) mm: ~ 18% more than 0.5 mm
+    assert d_echo.max() < 6.0 + 0.5
+    gappy = simulate_sweep(capsule, small("none", **base, missing_runs=2, missing_run_mm=5.0))
+    assert gappy.info["missing_frames"] >= 6 and gappy.sweep.n_frames == clean.sweep.n_frames - gappy.info["missing_frames"]
+    along = gappy.true_image_to_world[:, 2, 3] * np.sign(gappy.true_image_to_world[0, 2, 2])
+    assert np.diff(np.sort(along)).max() > 4.0   # a hole of ≥ 4 mm between recorded frames
+    assert gappy.visible_mesh.area == pytest.approx(clean.visible_mesh.area, rel=1e-9)
+    assert gappy.true_masks.shape[0] == gappy.sweep.n_frames
+
+
+def test_robustness_levels_exist():
+    hard = config_with_noise("hard")
+    assert (hard.pred_beam_noise_mm, hard.pred_fp_fraction, hard.frame_spacing_mm) == (0.8, 0.03, 1.5)
+    assert hard.missing_runs == 3 and hard.tracking_noise_mm == hard.tracking_noise_deg == 0.3
+    assert config_with_noise("moderate").pred_beam_noise_mm == 0.3

@@ -8,7 +8,6 @@ import ultraboneudf
 from ultraboneudf.evaluation import evaluate
 from ultraboneudf.config import preset
 from ultraboneudf.fields.mlp import DistanceMLP
-from ultraboneudf.geometry.neighbors import NearestIndex
 from ultraboneudf.geometry.queries import anchors, gaussian_queries, grid_queries, query_spread
 from ultraboneudf.training import TrainingData, train
 from ultraboneudf.training_many import StackedMLP, train_many
@@ -24,7 +23,7 @@ def _data(seed, n=1200, bump=0.0):
     a, t = anchors(surface, "official", 10, True, 0.1)
     f = lambda v: torch.as_tensor(v, dtype=torch.float32)  # noqa: E731
     d = TrainingData(surface=f(surface), queries=f(queries), anchors=f(a), anchor_targets=f(t))
-    d.static_targets = d.surface[NearestIndex(d.surface).query(d.queries)]
+    d.set_nearest_targets()
     return d
 
 

@@ -94,10 +94,9 @@ def test_warm_start_regresses_the_static_distance_first():
     cfg.train.iters, cfg.train.batch, cfg.train.warmup, cfg.train.lr = 200, 250, 10, 5e-3
     cfg.loss.warm_start, cfg.loss.lambda_far = 0.5, 0.0
     net = DistanceMLP((32, 32), generator=torch.Generator().manual_seed(0))
-    with pytest.raises(ValueError, match="static targets"):
+    with pytest.raises(ValueError, match="static distances"):
         train(net, data, cfg.loss, cfg.train, seed=0)
-    from ultraboneudf.geometry.neighbors import NearestIndex
-    data.static_targets = data.surface[NearestIndex(data.surface).query(data.queries)]
+    data.set_nearest_targets()
     hist = train(net, data, cfg.loss, cfg.train, seed=0, log_every=1).history
     assert len(hist["warm"]) == 100 and len(hist["tangent"]) == 100
     assert hist["warm"][-1] < 0.5 * hist["warm"][0]
@@ -113,7 +112,7 @@ def test_far_term_is_the_static_distance_error_beyond_the_threshold():
 
     data = _plane_data()
     index = NearestIndex(data.surface)
-    data.static_targets = data.surface[index.query(data.queries)]
+    data.set_nearest_targets()
     cfg = preset("fast").loss
     cfg.lambda_far, cfg.far_threshold, cfg.lambda_gs = 2.0, 0.05, 0.0
     net = DistanceMLP((16, 16), generator=torch.Generator().manual_seed(2))

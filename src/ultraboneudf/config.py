@@ -52,6 +52,31 @@ class DataConfig:
     anchor_min_target: float = 0.1
     """Keep anchors whose target exceeds this (official: squared distance > 0.1); a negative value
     keeps all."""
+    surface_fit_mm: float = 0.0
+    """Radius (mm) of the robust local plane fitted around every voxelised point
+    (:mod:`~ultraboneudf.geometry.surface_fit`); 0 = none. ``denoise``, ``outlier_sigmas`` and the
+    ``surface`` distance target (``loss.distance_target``) and ``bridge`` use these planes."""
+    denoise: int = 0
+    """Passes of: fit the local planes, drop the outliers (``outlier_sigmas``), move every point
+    onto its plane. Removes the noise across the surface (ultrasound: along the beam) and the
+    offsets between slices, keeps the points' spacing along it; a second pass fits thinner data.
+    0 = the points stay where they are (the planes are fitted once if ``surface_fit_mm`` > 0)."""
+    outlier_sigmas: float = 0.0
+    """Drop the points farther from their local plane than this many times the plane's robust spread
+    (and than a tenth of ``surface_fit_mm``), e.g. false echoes in the acoustic shadow, and isolated
+    points; 0 = keep all."""
+    shadow_mm: float = 0.0
+    """Sweeps (points with probe positions): drop the points that lie this many mm or more (up to
+    10 mm) beneath another point along their own beam, within half a millimetre of it — false echoes
+    in the acoustic shadow of the bone (after ``denoise``); 0 = keep them."""
+    bridge: float = 0.0
+    """Gaps in the data up to this × the local plane radius (``surface_fit_mm``, or the wider radius
+    the fit needed) count as surface: for the ``surface`` distance target and for the support trim
+    (``extract.trim_mm``, then measured to that surface instead of to the nearest point); 0 = none."""
+    rim_reach: float = 0.0
+    """``surface`` distance target: past the last points (the rim of the data) the surface goes on
+    for this × the local plane radius in each point's plane. Where an echo fades (oblique bone) the
+    bone goes on past the last detection; 0 = the surface ends at the points."""
     noise_sigma_mm: float = 0.0
     """Gaussian noise (mm) added to the input before pre-processing (experiment E6); 0 = none."""
     queries: str = "ultraboneudf"
@@ -124,6 +149,12 @@ class LossConfig:
     far_threshold: float = 0.01
     """``lambda_far``: queries closer to ``P`` than this (unit space) are left to the main loss; 0 =
     the term acts on every query (the ``fast`` preset)."""
+    distance_target: str = "point"
+    """What ``warm_start`` and ``lambda_far`` regress ``u(q)`` on: ``point``, the distance to the
+    nearest surface point ``t(q)`` (the reference's target); ``surface``, the distance to the surface
+    interpolated between the points across gaps up to ``data.bridge`` (:mod:`~ultraboneudf.geometry.
+    support`; needs ``data.surface_fit_mm``). Between the slices of a sweep the nearest point lies
+    beside the query, not under it: ``point`` then asks for a ridge of ``u`` between the slices."""
     gs_anchors: int = 0
     """Anchors drawn at random (with replacement) for ``L_GS`` at each step; 0 = all anchors every
     step (the reference). A subset is an unbiased estimate of the same loss at a fraction of the cost."""
@@ -223,6 +254,11 @@ class ExtractConfig:
     0 = off (the reference). It removes zero sets the field keeps away from the data (a sheet
     continued past the rim of an open surface, remnants of the initial sphere); a gap in the data
     wider than about twice this value opens as a hole."""
+    min_leaf_mm: float = 0.0
+    """Leaves no smaller than this (mm): the octree depth is lowered from ``max_depth`` until the leaf
+    edge reaches it, so a small bone is not meshed at a resolution finer than the data resolve (a
+    noisy field's minimum then stays above the band and crossing thresholds, which scale with the
+    leaf); 0 = ``max_depth`` as given. The depth used is ``counts.extract_depth`` in the sidecar."""
     fit_mm: float = 3.0
     """Data-fit self-check (sidecar ``data_fit``, a warning from the CLI): the fraction of input
     points farther than this many mm from the mesh, and of mesh area this far from every input point;
@@ -334,6 +370,29 @@ def _fast() -> Config:
     return cfg
 
 
+def _robust() -> Config:
+    """``fast`` made for what ultrasound gives: noisy, slice-structured, gappy points with false echoes.
+
+    A robust plane is fitted to the points within 4 mm of every point (mm, before normalisation):
+    points more than three robust spreads from it are dropped (false echoes in the shadow, isolated
+    detections) and the rest are moved onto it (noise along the beam, offsets between slices). The
+    warm start and the far-field term regress ``u`` on the distance to the surface interpolated
+    between the points across gaps up to the plane's radius, instead of the distance to the nearest
+    point, which between slices lies beside the query rather than under it; past the data's rims
+    that surface goes on for half the plane radius (2 mm), where an oblique echo faded. The support
+    trim measures to the bridged surface, so bridged gaps stay closed. Leaves are kept ≥ 1 mm, so a
+    small bone is not meshed finer than its data resolve."""
+    cfg = _fast()
+    cfg.data.surface_fit_mm = 4.0
+    cfg.data.denoise = 1
+    cfg.data.outlier_sigmas = 3.0
+    cfg.data.bridge = 1.0
+    cfg.data.rim_reach = 0.5
+    cfg.loss.distance_target = "surface"
+    cfg.extract.min_leaf_mm = 1.0
+    return cfg
+
+
 DEPTH_WIDTHS: tuple[int, ...] = (64, 128, 128, 256, 256, 256, 256, 256, 256, 256)
 """§6.4: hidden widths of a depth-``d`` network are the first ``d`` entries (depth 6 = default)."""
 
@@ -350,11 +409,15 @@ def model_widths(model: ModelConfig) -> tuple[int, ...]:
     return widths
 
 
-PRESETS = {"official": _official, "paper": _paper, "fast": _fast}
+PRESETS = {"robust": _robust, "fast": _fast, "official": _official, "paper": _paper}
+
+SHORT_PRESETS = frozenset({"robust", "fast"})
+"""Presets made for a CPU budget: the baselines keep the preset's steps and batch there (instead of
+their papers' schedules) and use 128³ grids."""
 
 
 def preset(name: str) -> Config:
-    """A fresh :class:`Config` of the named preset (``official``, ``paper`` or ``fast``)."""
+    """A fresh :class:`Config` of the named preset (``robust``, ``fast``, ``official`` or ``paper``)."""
     try:
         return PRESETS[name]()
     except KeyError:

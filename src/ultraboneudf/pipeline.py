@@ -19,11 +19,13 @@ import torch
 import trimesh
 
 from ._version import __version__
-from .config import Config, apply_overrides, preset as make_preset
+from .config import Config, ExtractConfig, apply_overrides, preset as make_preset
 from .errors import InputError
 from .extraction import data_fit, extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
 from .geometry.normalize import Normalizer
+from .geometry.support import DataSurface
+from .geometry.surface_fit import LocalPlanes, fit_local_planes, shadowed
 from .geometry.voxel import voxel_downsample, voxel_downsample_with
 from .io import save_json, save_mesh, validate_points
 from .methods import Fitted, get_method
@@ -58,9 +60,9 @@ class Reconstruction:
     field: Field | None = None
     """The trained field in unit space (``None`` for methods that give a mesh directly);
     :meth:`extract` extracts it again with other settings without retraining."""
-    support: np.ndarray | None = dataclasses.field(default=None, repr=False)
-    """The pre-processed (voxelised) cloud in unit space, (M, 3): what the support trim
-    (``extract.trim_mm``) measures distances to."""
+    support: np.ndarray | DataSurface | None = dataclasses.field(default=None, repr=False)
+    """What the support trim (``extract.trim_mm``) measures distances to, in unit space: the
+    pre-processed cloud (M, 3), or with ``data.bridge`` the surface bridged across its gaps."""
     extract_inputs: dict[str, np.ndarray | None] = dataclasses.field(default_factory=dict, repr=False)
     """The method's ``surface`` and ``normals`` (unit space) that the grid extractors use."""
     version: str = __version__
@@ -71,7 +73,7 @@ class Reconstruction:
         applies as in :func:`reconstruct`. ``None`` when no surface is found."""
         if self.field is None:
             raise RuntimeError(f"method {self.method!r} gives a mesh directly; there is no field to extract")
-        cfg = dataclasses.replace(self.config.extract, **settings)
+        cfg = resolve_leaf_size(dataclasses.replace(self.config.extract, **settings), self.normalizer)
         unit_mesh = extract_mesh(self.field, cfg, **self.extract_inputs)
         mesh, _ = _trim_and_map(unit_mesh, self.support, self.normalizer, cfg.trim_mm)
         return mesh
@@ -173,8 +175,10 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
     points = validate_points(points_mm, source=source)
     probe = _validate_probe(probe_positions, len(points), source)
     seed_everything(seed)
-    unit = _to_unit(points, probe, cfg, seed)
+    unit = _to_unit(points, probe, cfg, seed, source)
     extra = {"probe": unit.probe} if entry.takes_probe else {}
+    if entry.takes_planes:
+        extra["planes"] = unit.planes
     fitted = entry.fit(unit.points, cfg, dev, seed, progress, **extra)
     return _finish(fitted, unit, cfg, dev, progress, method, preset if config is None else "custom", seed,
                    t_start)
@@ -203,10 +207,10 @@ def reconstruct_many(clouds_mm: Sequence[Any], preset: str = "fast", device: str
     units, datas, stages, prep = [], [], [], []
     for cloud, name in zip(clouds, names):
         seed_everything(seed)
-        unit = _to_unit(validate_points(cloud, source=name), None, cfg, seed)
+        unit = _to_unit(validate_points(cloud, source=name), None, cfg, seed, name)
         t0 = time.perf_counter()
         stage: dict[str, float] = {}
-        datas.append(ubu.prepare(unit.points, cfg, dev, seed, progress, timings=stage))
+        datas.append(ubu.prepare(unit.points, cfg, dev, seed, progress, timings=stage, planes=unit.planes))
         prep.append(time.perf_counter() - t0)
         units.append(unit)
         stages.append(stage)
@@ -224,13 +228,16 @@ def reconstruct_many(clouds_mm: Sequence[Any], preset: str = "fast", device: str
 
 @dataclass
 class _UnitCloud:
-    """A cloud after voxelisation, in unit space, with its map back to mm."""
+    """A cloud after voxelisation (and the local-plane stage), in unit space, with its map back to mm."""
 
     points: np.ndarray          # (M, 3) unit space
     probe: np.ndarray | None    # (M, 3) unit space probe positions, if any
+    planes: LocalPlanes | None  # the local planes of the points, lengths in unit space, if fitted
     normalizer: Normalizer
     input_points: int
+    outliers: int               # points the local-plane stage dropped
     voxel_s: float
+    surface_fit_s: float
 
 
 def _configure(preset: str, method: str, config: Config | None, overrides: dict[str, Any],
@@ -245,68 +252,124 @@ def _configure(preset: str, method: str, config: Config | None, overrides: dict[
     return cfg, entry
 
 
-def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int) -> _UnitCloud:
-    """Optional test noise, voxel mean (probe positions follow their points), and the one
+def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int,
+             source: str = "points") -> _UnitCloud:
+    """Optional test noise, voxel mean (probe positions follow their points), the local-plane stage
+    in mm (outliers dropped, points moved onto their planes, normals kept), and the one
     normalisation into unit space."""
     t0 = time.perf_counter()
+    d = cfg.data
     n_input = len(points)
-    if cfg.data.noise_sigma_mm > 0:
-        points = points + np.random.default_rng(seed + 1).normal(0.0, cfg.data.noise_sigma_mm, points.shape)
+    if d.noise_sigma_mm > 0:
+        points = points + np.random.default_rng(seed + 1).normal(0.0, d.noise_sigma_mm, points.shape)
     voxel_probe = None
     if probe is None:
-        voxelised = voxel_downsample(points, cfg.data.voxel_size_mm)
+        voxelised = voxel_downsample(points, d.voxel_size_mm)
     else:  # each voxel's probe position: the mean of those of its points
-        voxelised, voxel_probe = voxel_downsample_with(points, probe, cfg.data.voxel_size_mm)
+        voxelised, voxel_probe = voxel_downsample_with(points, probe, d.voxel_size_mm)
+    t1 = time.perf_counter()
+    planes, outliers = None, 0
+    if d.surface_fit_mm > 0:
+        for _ in range(max(1, d.denoise)):
+            view = None
+            if voxel_probe is not None:  # sweep points: the planes must face the probe
+                view = voxelised - voxel_probe
+                view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
+            planes = fit_local_planes(voxelised, d.surface_fit_mm, view=view)
+            keep = (~planes.outliers(d.outlier_sigmas, 0.1 * d.surface_fit_mm) if d.outlier_sigmas > 0
+                    else np.ones(len(voxelised), dtype=bool))
+            if not keep.any():
+                raise InputError(f"{source}: no point has enough neighbours within data.surface_fit_mm "
+                                 f"= {d.surface_fit_mm:g} mm to form a surface (is the cloud in mm?)")
+            outliers += int((~keep).sum())
+            if d.denoise:
+                voxelised = planes.projected(voxelised)
+            if view is not None and d.shadow_mm > 0:  # among the points kept so far
+                rows = np.flatnonzero(keep)
+                shadow = rows[shadowed(voxelised[rows], view[rows], d.shadow_mm)]
+                keep[shadow] = False
+                outliers += len(shadow)
+            voxelised, planes = voxelised[keep], planes.subset(keep)
+            voxel_probe = None if voxel_probe is None else voxel_probe[keep]
+    elif d.denoise or d.outlier_sigmas > 0:
+        raise InputError("data.denoise and data.outlier_sigmas need the local planes: set "
+                         "data.surface_fit_mm > 0")
     normalizer = Normalizer.fit(voxelised)
     return _UnitCloud(points=normalizer.forward(voxelised),
                       probe=None if voxel_probe is None else normalizer.forward(voxel_probe),
-                      normalizer=normalizer, input_points=n_input, voxel_s=time.perf_counter() - t0)
+                      planes=None if planes is None else planes.scaled(1.0 / normalizer.scale),
+                      normalizer=normalizer, input_points=n_input, outliers=outliers,
+                      voxel_s=t1 - t0, surface_fit_s=time.perf_counter() - t1)
 
 
 def _finish(fitted: Fitted, unit: _UnitCloud, cfg: Config, dev: torch.device, progress: Progress,
             method: str, preset: str, seed: int, t_start: float) -> Reconstruction:
     """Extraction (unless the method gave a mesh), the map back to mm, timings, counts, quality."""
     t1 = time.perf_counter()
+    extract_cfg = resolve_leaf_size(cfg.extract, unit.normalizer)
     if fitted.mesh is not None:
         unit_mesh = fitted.mesh
     elif fitted.field is not None:
-        unit_mesh = extract_mesh(fitted.field, cfg.extract, progress, surface=fitted.surface,
+        unit_mesh = extract_mesh(fitted.field, extract_cfg, progress, surface=fitted.surface,
                                  normals=fitted.normals)
     else:
         unit_mesh = None
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
     extract_s = time.perf_counter() - t1
-    mesh, trimmed = _trim_and_map(unit_mesh, unit.points, unit.normalizer, cfg.extract.trim_mm)
+    support = _support(unit.points, unit.planes, cfg.data.bridge)
+    mesh, trimmed = _trim_and_map(unit_mesh, support, unit.normalizer, cfg.extract.trim_mm)
     t2 = time.perf_counter()
     fit = (data_fit(mesh, unit.normalizer.inverse(unit.points), cfg.extract.fit_mm)
            if mesh is not None and cfg.extract.fit_mm > 0 else {})
     fit_s = time.perf_counter() - t2
 
     timings = {
-        "preprocess_s": unit.voxel_s + fitted.timings.get("preprocess_s", 0.0),
+        "preprocess_s": unit.voxel_s + unit.surface_fit_s + fitted.timings.get("preprocess_s", 0.0),
         "train_s": fitted.timings.get("train_s", 0.0),
         "extract_s": extract_s,
         "voxel_s": unit.voxel_s,
+        "surface_fit_s": unit.surface_fit_s,
         "fit_s": fit_s,
         # the method's own pre-processing steps (e.g. subset_s, sigma_s, static_nn_s)
         **{k: v for k, v in fitted.timings.items() if k not in ("preprocess_s", "train_s")},
     }
     timings["total_s"] = time.perf_counter() - t_start
-    counts = {"input_points": unit.input_points, "voxelized_points": len(unit.points), **fitted.counts,
+    counts = {"input_points": unit.input_points, "voxelized_points": len(unit.points) + unit.outliers,
+              "outliers_removed": unit.outliers, "extract_depth": extract_cfg.max_depth, **fitted.counts,
               "vertices": 0 if mesh is None else len(mesh.vertices),
               "faces": 0 if mesh is None else len(mesh.faces), "trimmed_faces": trimmed}
     quality = mesh_quality(mesh) if mesh is not None else {}
     return Reconstruction(mesh=mesh, method=method, preset=preset, config=cfg, timings=timings,
                           counts=counts, quality=quality, data_fit=fit, device=str(dev), seed=seed,
                           normalizer=unit.normalizer, history=fitted.history, method_info=fitted.info,
-                          field=fitted.field, support=unit.points,
+                          field=fitted.field, support=support,
                           extract_inputs={"surface": fitted.surface, "normals": fitted.normals})
 
 
-def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray, normalizer: Normalizer,
+def resolve_leaf_size(cfg: ExtractConfig, normalizer: Normalizer) -> ExtractConfig:
+    """``cfg`` with ``max_depth`` lowered until the leaf edge is at least ``cfg.min_leaf_mm`` mm
+    (``extract.min_leaf_mm``; never below depth 1), unchanged when that is 0."""
+    if cfg.min_leaf_mm <= 0:
+        return cfg
+    span_mm = (cfg.domain[1] - cfg.domain[0]) * normalizer.scale
+    depth = cfg.max_depth
+    while depth > 1 and span_mm / 2 ** depth < cfg.min_leaf_mm:
+        depth -= 1
+    return dataclasses.replace(cfg, max_depth=depth)
+
+
+def _support(points: np.ndarray, planes: LocalPlanes | None, bridge: float) -> np.ndarray | DataSurface:
+    """The support trim's reference: the unit-space points, or with ``data.bridge`` > 0 (and local
+    planes) the surface bridged across their gaps."""
+    if planes is None or bridge <= 0:
+        return points
+    return DataSurface(points, planes.normal, bridge * planes.radius)
+
+
+def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, normalizer: Normalizer,
                   trim_mm: float) -> tuple[trimesh.Trimesh | None, int]:
-    """The support trim (``extract.trim_mm``, against the unit-space ``support`` cloud), then the one
+    """The support trim (``extract.trim_mm``, against the unit-space ``support``), then the one
     map back to mm. Returns the mesh in mm (``None`` when nothing is left) and the faces removed."""
     if unit_mesh is None:
         return None, 0

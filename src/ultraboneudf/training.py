@@ -105,6 +105,14 @@ class TrainingData:
     anchors: torch.Tensor            # (G, 3)
     anchor_targets: torch.Tensor     # (G,)
     static_targets: torch.Tensor | None = None  # (T, 3) t(q), for the pull and CAP-UDF losses
+    static_distance: torch.Tensor | None = None  # (T,) what the warm start and the far term regress u on
+
+    def set_nearest_targets(self) -> None:
+        """``static_targets`` = the nearest surface row ``t(q)`` of every query (§1.3 step 5) and
+        ``static_distance`` = ``‖q − t(q)‖`` (the ``point`` distance target)."""
+        idx = NearestIndex(self.surface).query(self.queries).to(self.surface.device)
+        self.static_targets = self.surface[idx]
+        self.static_distance = (self.queries - self.static_targets).norm(dim=1)
 
 
 @dataclass
@@ -149,9 +157,10 @@ def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: Train
     plus ``total``. Pure function of the network's current weights. ``anchor_rows``: the anchors
     that enter ``L_GS`` (all when ``None``); ``explicit``: the hand-written input gradient
     (:func:`value_and_grad`) instead of autograd's double backward; ``warm``: the warm-start term
-    ``mean |u(q) − ‖q − t(q)‖|`` (static nearest surface point ``t``) replaces the main loss."""
+    ``mean |u(q) − d(q)|`` (``d``: ``data.static_distance``, ``loss.distance_target``) replaces the
+    main loss."""
     if warm:
-        terms = {"warm": (net(q) - (q - data.static_targets[batch]).norm(dim=1)).abs().mean()}
+        terms = {"warm": (net(q) - data.static_distance[batch]).abs().mean()}
         return _with_regularisers(net, data, cfg, terms, terms["warm"], None, anchor_rows, explicit)
     u, g = value_and_grad(net, q, create_graph=True, explicit=explicit)
     g_hat = normalize(g)
@@ -162,7 +171,7 @@ def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: Train
         terms["tangent"] = tangent_loss(tangent_residual(q, u, g_hat, foot), cfg.tangent_norm)
         total = cfg.lambda_tangent * terms["tangent"]
         if cfg.lambda_far:
-            d = (q - data.static_targets[batch]).norm(dim=1)
+            d = data.static_distance[batch]
             terms["far"] = ((u - d).abs() * (d > cfg.far_threshold)).mean()
             total = total + cfg.lambda_far * terms["far"]
     elif cfg.kind == "pull":
@@ -234,8 +243,8 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     gs_rows = loss_cfg.gs_anchors if 0 < loss_cfg.gs_anchors < n_anchors else 0
     iters = train_cfg.iters
     warm_steps = round(loss_cfg.warm_start * iters)
-    if (warm_steps > 0 or loss_cfg.lambda_far) and data.static_targets is None:
-        raise ValueError("loss.warm_start and loss.lambda_far need the static targets t(q) in the "
+    if (warm_steps > 0 or loss_cfg.lambda_far) and data.static_distance is None:
+        raise ValueError("loss.warm_start and loss.lambda_far need the static distances in the "
                          "training data")
     net.train()
     threads = train_cfg.threads if device.type == "cpu" else 0

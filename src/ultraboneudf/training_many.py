@@ -133,8 +133,8 @@ def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: Los
     indices = [NearestIndex(d.surface) for d in datas]
     opt = make_optimizer(stacked.parameters(), device, fused=True)
     warm_steps = round(loss_cfg.warm_start * iters)
-    if (warm_steps > 0 or loss_cfg.lambda_far) and any(d.static_targets is None for d in datas):
-        raise ValueError("loss.warm_start and loss.lambda_far need the static targets t(q)")
+    if (warm_steps > 0 or loss_cfg.lambda_far) and any(d.static_distance is None for d in datas):
+        raise ValueError("loss.warm_start and loss.lambda_far need the static distances")
     anchors = _Anchors(datas, loss_cfg.gs_anchors) if loss_cfg.lambda_gs else None
     stacked.train()
     threads = train_cfg.threads if device.type == "cpu" else 0
@@ -196,8 +196,8 @@ def _loss_terms(net: StackedMLP, datas: list[TrainingData], rows: list[torch.Ten
     q = torch.stack([d.queries[r] for d, r in zip(datas, rows)])
     terms: dict[str, torch.Tensor] = {}
     if warm:
-        t = torch.stack([d.static_targets[r] for d, r in zip(datas, rows)])
-        terms["warm"] = (net(q, weights) - (q - t).norm(dim=2)).abs().mean(dim=1)
+        dist = torch.stack([d.static_distance[r] for d, r in zip(datas, rows)])
+        terms["warm"] = (net(q, weights) - dist).abs().mean(dim=1)
         total = terms["warm"]
     else:
         u, g = net.value_and_grad(q, weights)
@@ -209,8 +209,7 @@ def _loss_terms(net: StackedMLP, datas: list[TrainingData], rows: list[torch.Ten
         terms["tangent"] = _batched_tangent(residual, cfg.tangent_norm)
         total = cfg.lambda_tangent * terms["tangent"]
         if cfg.lambda_far:
-            t = torch.stack([d.static_targets[r] for d, r in zip(datas, rows)])
-            dist = (q - t).norm(dim=2)
+            dist = torch.stack([d.static_distance[r] for d, r in zip(datas, rows)])
             terms["far"] = ((u - dist).abs() * (dist > cfg.far_threshold)).mean(dim=1)
             total = total + cfg.lambda_far * terms["far"]
     if anchors is not None:

@@ -14,19 +14,28 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from ..geometry.support import DataSurface
 
-def unsupported_faces(mesh: trimesh.Trimesh, support: np.ndarray, max_distance: float) -> np.ndarray:
-    """(F,) bool: the faces of ``mesh`` whose mean vertex distance to the nearest row of ``support``
-    (N, 3) is ≥ ``max_distance`` (same units as the mesh) — the support-trim rule."""
-    dist, _ = cKDTree(support).query(mesh.vertices, k=1, workers=-1)
+
+def unsupported_faces(mesh: trimesh.Trimesh, support: np.ndarray | DataSurface, max_distance: float
+                      ) -> np.ndarray:
+    """(F,) bool: the faces of ``mesh`` whose mean vertex distance to ``support`` is ≥
+    ``max_distance`` (same units as the mesh) — the support-trim rule. ``support``: points (N, 3)
+    (distance to the nearest one) or a :class:`~ultraboneudf.geometry.support.DataSurface`
+    (distance to the surface bridged across the data's gaps)."""
+    if isinstance(support, DataSurface):
+        dist = support.distance(mesh.vertices)
+    else:
+        dist, _ = cKDTree(support).query(mesh.vertices, k=1, workers=-1)
     return dist[mesh.faces].mean(axis=1) >= max_distance
 
 
-def trim_to_support(mesh: trimesh.Trimesh | None, support: np.ndarray, max_distance: float
+def trim_to_support(mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, max_distance: float
                     ) -> trimesh.Trimesh | None:
-    """``mesh`` without the faces whose mean vertex distance to the nearest row of ``support``
-    (N, 3) is ≥ ``max_distance`` (same units as the mesh), and without the vertices no face uses
-    any more. ``max_distance ≤ 0`` returns ``mesh`` unchanged; ``None`` when no face is left."""
+    """``mesh`` without the faces whose mean vertex distance to ``support`` (points (N, 3) or a
+    :class:`~ultraboneudf.geometry.support.DataSurface`) is ≥ ``max_distance`` (same units as the
+    mesh), and without the vertices no face uses any more. ``max_distance ≤ 0`` returns ``mesh``
+    unchanged; ``None`` when no face is left."""
     if mesh is None or max_distance <= 0:
         return mesh
     keep = ~unsupported_faces(mesh, support, max_distance)

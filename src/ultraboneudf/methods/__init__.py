@@ -11,7 +11,8 @@ from . import capudf, carotidudf, funsr, poisson, ultraboneudf
 from .base import FitFunction, Fitted, Method
 
 METHODS: dict[str, Method] = {
-    "ultraboneudf": Method(ultraboneudf.fit, summary="tangent loss + L_GS, DualMesh-UDF (§1)"),
+    "ultraboneudf": Method(ultraboneudf.fit, summary="tangent loss + L_GS, DualMesh-UDF (§1)",
+                           takes_planes=True),
     "capudf": Method(capudf.fit, capudf.configure, "CAP-UDF: consistency-aware loss, two stages (§3)"),
     "funsr": Method(funsr.fit, funsr.configure, "FUNSR: SDF + SCC + adversarial loss, marching cubes (§4)"),
     "carotidudf": Method(carotidudf.fit, carotidudf.configure_carotidudf, "CarotidUDF as inferred (§5)"),

@@ -6,7 +6,9 @@ It returns a field for the extractor, or a unit-space mesh directly (e.g. Poisso
 
 A method whose registry entry has ``takes_probe=True`` also accepts ``probe=`` (``(N, 3)`` unit
 space, row ``i`` the probe position of ``points[i]``, or ``None``): per-point provenance from a
-tracked sweep (§7.2 alternative B). Other methods never receive it.
+tracked sweep (§7.2 alternative B). One with ``takes_planes=True`` accepts ``planes=``: the
+pipeline's :class:`~ultraboneudf.geometry.surface_fit.LocalPlanes` of ``points`` (lengths in unit
+space), or ``None`` when ``data.surface_fit_mm`` is 0. Other methods never receive them.
 
 The registry (:data:`ultraboneudf.methods.METHODS`) holds one :class:`Method` per name: its ``fit``
 and a ``configure(cfg, preset)`` that sets the method's own defaults (network, loss, schedule,
@@ -56,9 +58,11 @@ def keep_preset(cfg: Config, preset: str) -> None:
 @dataclass(frozen=True)
 class Method:
     """A registry entry: ``fit`` and ``configure(cfg, preset_name)`` (method defaults, in place).
-    ``takes_probe``: ``fit`` accepts per-point probe positions as ``probe=`` (see the module doc)."""
+    ``takes_probe`` / ``takes_planes``: ``fit`` accepts per-point probe positions as ``probe=`` /
+    the local planes as ``planes=`` (see the module doc)."""
 
     fit: FitFunction
     configure: ConfigureFunction = keep_preset
     summary: str = ""
     takes_probe: bool = False
+    takes_planes: bool = False

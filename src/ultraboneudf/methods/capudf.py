@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..config import Config
+from ..config import Config, SHORT_PRESETS
 from ..errors import InputError
 from ..fields.base import normalize
 from ..fields.mlp import MLPField, count_parameters, value_and_grad
@@ -30,8 +30,9 @@ MIN_POINTS = 60
 
 
 def configure(cfg: Config, preset: str) -> None:
-    """CAP-UDF ``base.conf`` defaults (§3.2–3.5). For ``fast`` the preset's iterations and batch are
-    kept and the expansion happens after two thirds of them (the reference ratio 40k / 60k)."""
+    """CAP-UDF ``base.conf`` defaults (§3.2–3.5). For the short presets (``robust``, ``fast``) the
+    preset's iterations and batch are kept and the expansion happens after two thirds of them (the
+    reference ratio 40k / 60k)."""
     cfg.model.hidden = (256,) * 8
     cfg.model.skip = (4,)
     cfg.model.abs_output = True
@@ -40,7 +41,7 @@ def configure(cfg: Config, preset: str) -> None:
     cfg.data.queries = "capudf"
     cfg.data.anchors = "none"
     cfg.data.grid_queries = 0
-    if preset == "fast":
+    if preset in SHORT_PRESETS:
         cfg.train.expand_at = (2 * cfg.train.iters) // 3
         cfg.train.expand_batch = 4 * cfg.train.batch
         cfg.train.expand_candidates = 200_000
@@ -162,7 +163,7 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
         as_t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
         data = TrainingData(surface=as_t(p), queries=as_t(queries), anchors=as_t(np.zeros((0, 3))),
                             anchor_targets=as_t(np.zeros(0)))
-        data.static_targets = data.surface[NearestIndex(data.surface).query(data.queries).to(device)]
+        data.set_nearest_targets()
         advance()
     prep_s = time.perf_counter() - t0
     net = build_network(cfg, seed, device)

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..config import Config
+from ..config import Config, SHORT_PRESETS
 from ..fields.base import normalize
 from ..fields.mlp import MLPField, count_parameters, value_and_grad
 from ..losses import lsgan_discriminator_loss, lsgan_generator_loss, pull_loss, sign_consistency_loss
@@ -53,7 +53,7 @@ def configure(cfg: Config, preset: str) -> None:
     """FUNSR defaults (§4.1–4.5): no voxel down-sampling, the UltraBoneUDF subset and queries (all
     stored queries kept), SDF network ``[3, 256×8, 1]`` with skip at layer 4 and no absolute value,
     un-squared pull + 0.005·SCC + 0.005·ADL, 15,000 iterations, SDF marching cubes on 256³ over [−1, 1]³.
-    ``fast`` keeps the preset's iterations and batch and meshes at 128³."""
+    The short presets (``robust``, ``fast``) keep their iterations and batch and mesh at 128³."""
     cfg.data.voxel_size_mm = 0.0
     cfg.data.anchors = "none"
     cfg.data.drop_to_multiple = 0
@@ -66,13 +66,13 @@ def configure(cfg: Config, preset: str) -> None:
     cfg.loss.lambda_scc = 0.005
     cfg.loss.lambda_adl = 0.005
     cfg.train.disc_lr = 1e-3
-    if preset != "fast":
+    if preset not in SHORT_PRESETS:
         cfg.train.iters = 15_000
         cfg.train.batch = 5_000
         cfg.train.lr = 1e-3
         cfg.train.warmup = 1_000
     cfg.extract.mode = "sdf_mc"
-    cfg.extract.resolution = 128 if preset == "fast" else 256
+    cfg.extract.resolution = 128 if preset in SHORT_PRESETS else 256
     cfg.extract.grid_box = "domain"
     cfg.extract.domain = (-1.0, 1.0)
     cfg.extract.batch = 1_000_000

@@ -10,9 +10,12 @@ import numpy as np
 import torch
 
 from ..config import Config, model_widths
+from ..errors import InputError
 from ..fields.mlp import DistanceMLP, MLPField, count_parameters
 from ..geometry.neighbors import NearestIndex
-from ..geometry.queries import anchors, gaussian_queries, grid_queries, query_spread, surface_subset
+from ..geometry.support import DataSurface
+from ..geometry.surface_fit import LocalPlanes
+from ..geometry.queries import anchors, gaussian_queries, grid_queries, query_spread, surface_subset_index
 from ..progress import QUIET, Progress
 from ..training import TrainingData, train
 from .base import Fitted
@@ -20,12 +23,14 @@ from .base import Fitted
 
 def prepare(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
             progress: Progress = QUIET, static_targets: bool | None = None,
-            timings: dict[str, float] | None = None) -> TrainingData:
+            timings: dict[str, float] | None = None, planes: LocalPlanes | None = None) -> TrainingData:
     """Surface rows, queries (+ static targets for the pull loss) and anchors, on ``device`` (§1.2–1.4).
 
     ``points`` is the voxelised, normalised cloud (unit space). Random draws use a NumPy generator
     seeded with ``seed`` so that the samples are identical on every device. ``static_targets``:
-    compute ``t(q)`` (default: when the loss needs it: kinds ``pull`` and ``capudf``, warm start).
+    compute ``t(q)`` and the distance target of ``loss.distance_target`` (default: when the loss
+    needs them: kinds ``pull`` and ``capudf``, warm start, far-field term). ``planes``: the
+    pipeline's local planes of ``points`` (unit space), which the ``surface`` target needs.
     ``timings``: if given, receives the seconds of each step (``subset_s``, ``sigma_s``,
     ``queries_s``, ``anchors_s``, ``static_nn_s``).
     """
@@ -33,11 +38,16 @@ def prepare(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     if static_targets is None:
         static_targets = (cfg.loss.kind in ("pull", "capudf") or cfg.loss.warm_start > 0
                           or cfg.loss.lambda_far > 0)
+    if cfg.loss.distance_target not in ("point", "surface"):
+        raise InputError(f"unknown loss.distance_target {cfg.loss.distance_target!r}; choose point or surface")
+    if static_targets and cfg.loss.distance_target == "surface" and planes is None:
+        raise InputError("loss.distance_target=surface needs the local planes: set data.surface_fit_mm > 0")
     d = cfg.data
     rng = np.random.default_rng(seed)
     with progress.stage("sampling", 4) as advance:
-        surface = surface_subset(points, d.subset, d.subset_threshold, d.fps_sizes, d.max_points,
-                                 device=str(device))
+        rows = surface_subset_index(points, d.subset, d.subset_threshold, d.fps_sizes, d.max_points,
+                                    device=str(device))
+        surface = points if rows is None else points[rows]
         clock("subset_s")
         advance()
         sigma = query_spread(surface, d.sigma_k)
@@ -59,9 +69,12 @@ def prepare(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
         data = TrainingData(surface=as_t(surface), queries=as_t(queries), anchors=as_t(anchor_pts),
                             anchor_targets=as_t(anchor_tgt))
         if static_targets:
-            # static nearest surface point t(q), computed once (§1.3 step 5)
-            idx = NearestIndex(data.surface).query(data.queries).to(device)
-            data.static_targets = data.surface[idx]
+            data.set_nearest_targets()
+            if cfg.loss.distance_target == "surface":
+                own = planes if rows is None else planes.subset(rows)
+                data.static_distance = as_t(
+                    DataSurface(surface, own.normal, d.bridge * own.radius, d.rim_reach * own.radius)
+                    .distance(queries))
         clock("static_nn_s")
         advance()
     return data
@@ -93,11 +106,12 @@ def build_network(cfg: Config, seed: int, device: torch.device) -> torch.nn.Modu
 
 
 def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
-        progress: Progress = QUIET) -> Fitted:
-    """Train the UltraBoneUDF field on a unit-space cloud; returns the field and its counts."""
+        progress: Progress = QUIET, planes: LocalPlanes | None = None) -> Fitted:
+    """Train the UltraBoneUDF field on a unit-space cloud (``planes``: the pipeline's local planes,
+    for the ``surface`` distance target); returns the field and its counts."""
     t0 = time.perf_counter()
     stages: dict[str, float] = {}
-    data = prepare(points, cfg, device, seed, progress, timings=stages)
+    data = prepare(points, cfg, device, seed, progress, timings=stages, planes=planes)
     prep_s = time.perf_counter() - t0
     net = build_network(cfg, seed, device)
     result = train(net, data, cfg.loss, cfg.train, seed, progress)

@@ -130,6 +130,18 @@ class SimulationConfig:
     """Thickness of the predicted mask band."""
     pred_fp_per_frame: float = 0.3
     """Mean number of off-surface false-positive segments per frame."""
+    pred_beam_noise_mm: float = 0.0
+    """Independent noise (std, mm) of the predicted boundary along the beam, per scan line."""
+    pred_fp_fraction: float = 0.0
+    """Fraction of the predicted scan lines whose bone pixel is a false echo in the shadow
+    instead: the true surface is missed there and a pixel lies ``U(0, pred_fp_depth_mm)`` deeper."""
+    pred_fp_depth_mm: float = 10.0
+    """How far under the surface the scattered false echoes of ``pred_fp_fraction`` reach."""
+    missing_runs: int = 0
+    """Runs of consecutive frames missing from the recording (probe lifted, tracking lost); the
+    visible truth still covers them, so a reconstruction must bridge them."""
+    missing_run_mm: float = 4.0
+    """Length of each missing run along the sweep."""
     gt_step_mm: float = 0.25
     """Pose interpolation step of the visible-truth pass."""
     seed: int = 0
@@ -148,9 +160,16 @@ NOISE_PRESETS: dict[str, dict[str, float]] = {
     "high": dict(speed_variation=0.5, tilt_deg=12.0, rock_deg=8.0, jitter_mm=0.6, jitter_deg=1.0,
                  tracking_noise_mm=0.3, tracking_noise_deg=0.3, pred_gap_fraction=0.25,
                  pred_jitter_px=2.0, pred_bias_px=1.0, pred_fp_per_frame=1.0),
+    "moderate": dict(pred_beam_noise_mm=0.3, frame_spacing_mm=0.5),
+    "hard": dict(pred_beam_noise_mm=0.8, pred_fp_fraction=0.03, pred_fp_depth_mm=10.0,
+                 frame_spacing_mm=1.5, missing_runs=3, missing_run_mm=4.0,
+                 tracking_noise_mm=0.3, tracking_noise_deg=0.3),
 }
 """Named noise levels for ``simulate --noise``: ``none`` (ideal sweep and masks), ``default``,
-``high``."""
+``high`` (a shaky hand, poor masks), and the robustness benchmark's ``moderate`` (0.3 mm noise along
+the beam, frames every 0.5 mm) and ``hard`` (0.8 mm noise along the beam, 3% of the scan lines a
+false echo up to 10 mm under the surface, frames every 1.5 mm with three 4 mm runs missing,
+tracking error 0.3 mm / 0.3° per frame), each on top of ``default``'s segmentation errors."""
 
 
 def config_with_noise(noise: str = "default", **overrides: Any) -> SimulationConfig:
@@ -485,6 +504,11 @@ def predicted_mask(rows: np.ndarray, incidence: np.ndarray, fascia_y: np.ndarray
     ok &= ~_runs_mask(rng, w, cfg.pred_gap_fraction, cfg.pred_gap_mean_mm / cfg.spacing_mm)
     jitter = _smooth_noise(rng, w, sigma=3.0)[:, 0] * cfg.pred_jitter_px + rng.normal(0, cfg.pred_bias_px) \
         if (cfg.pred_jitter_px > 0 or cfg.pred_bias_px > 0) else np.zeros(w)
+    if cfg.pred_beam_noise_mm > 0:
+        jitter = jitter + rng.normal(0.0, cfg.pred_beam_noise_mm / cfg.spacing_mm, w)
+    if cfg.pred_fp_fraction > 0:  # the surface missed, a false echo in its shadow instead
+        false = ok & (rng.random(w) < cfg.pred_fp_fraction)
+        jitter = jitter + np.where(false, rng.uniform(0.0, cfg.pred_fp_depth_mm / cfg.spacing_mm, w), 0.0)
     cols = np.flatnonzero(ok)
     top = np.rint(rows[cols] + jitter[cols]).astype(np.int64)
     for t in range(max(1, cfg.pred_thickness_px)):
@@ -617,15 +641,37 @@ def simulate_sweep(mesh: trimesh.Trimesh, config: SimulationConfig | None = None
                   image_size=(w, h), images=images, masks=pred_masks, timestamps=stamps,
                   frame_names=[f"{int(t)}.png" for t in stamps], pixel_offset=0.5, orientation="MF",
                   source="simulation", meta={"layout": "ultrabones", "calibration": calib})
+    kept = np.flatnonzero(~missing_frames(poses, cfg, rng))
     info = dict(path_info)
-    info.update(frames=n, visible_faces=int(len(visible_mesh.faces)),
+    info.update(frames=int(len(kept)), missing_frames=int(n - len(kept)),
+                visible_faces=int(len(visible_mesh.faces)),
                 visible_area_mm2=float(visible_mesh.area) if len(visible_mesh.faces) else 0.0,
-                bone_columns_fraction=float(np.isfinite(depths).mean()),
-                true_mask_pixels=int(true_masks.sum()), pred_mask_pixels=int(pred_masks.sum()))
-    return SimulatedSweep(sweep=sweep, true_image_to_world=poses, true_masks=true_masks,
-                          pred_masks=pred_masks, surface_depth_mm=depths, incidence_deg=incid,
+                bone_columns_fraction=float(np.isfinite(depths[kept]).mean()),
+                true_mask_pixels=int(true_masks[kept].sum()), pred_mask_pixels=int(pred_masks[kept].sum()))
+    return SimulatedSweep(sweep=sweep.subset(kept), true_image_to_world=poses[kept],
+                          true_masks=true_masks[kept], pred_masks=pred_masks[kept],
+                          surface_depth_mm=depths[kept], incidence_deg=incid[kept],
                           calibration=calib, visible_mesh=visible_mesh, closed_mesh=mesh,
                           config=cfg, info=info)
+
+
+def missing_frames(poses: np.ndarray, cfg: SimulationConfig, rng: np.random.Generator) -> np.ndarray:
+    """``(F,)`` bool, True for the frames inside ``cfg.missing_runs`` runs of ``cfg.missing_run_mm``
+    each, placed at random along the sweep (not overlapping, none at its ends)."""
+    n = len(poses)
+    out = np.zeros(n, dtype=bool)
+    if cfg.missing_runs <= 0 or n < 3:
+        return out
+    face = poses[:, :3, 3] + poses[:, :3, 0] * (cfg.width_px * cfg.spacing_mm / 2)
+    travel = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(face, axis=0), axis=1))])
+    length, run = travel[-1], cfg.missing_run_mm
+    # equal slots between 10% and 90% of the sweep, one run at a random place in each
+    slots = np.linspace(0.1 * length, 0.9 * length, cfg.missing_runs + 1)
+    for lo, hi in zip(slots[:-1], slots[1:]):
+        start = rng.uniform(lo, max(lo, hi - run))
+        out |= (travel >= start) & (travel < start + run)
+    out[[0, -1]] = False
+    return out
 
 
 SIM_README = """# Simulated tracked ultrasound sweep (ultraboneudf simulate)

@@ -1,0 +1,77 @@
+"""Distance to the surface a point cloud samples: across its gaps, not past its rims.
+
+The distance to the nearest point is a poor stand-in for the distance to a sampled surface where
+the samples are sparse: between the slices of a sweep, and over a run of missing frames, the
+nearest point lies *beside* a query on the surface, not under it. :class:`DataSurface` answers with
+the distance to the surface interpolated between the points instead — but only *between* them: a
+query counts as lying over a gap when, among its ``k`` nearest points, one lies on the opposite
+side of it from the nearest (in the nearest point's plane) within the local gap length ``bridge``
+(also the point nearest to the query moved away from the nearest by half that length, which finds
+the next slice when the ``k`` nearest all lie on the nearest's own).
+There the distance is the distance to the points' planes (the nearest point's and that opposite
+one's, interpolated by in-plane distance); elsewhere — beyond the rim of an open surface, or with no
+plane — it is the distance to a disc of radius ``reach`` around the nearest point in its plane (0:
+the point itself). So gaps up to ``bridge`` close, and rims stay within ``reach`` of where the data
+end.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+class DataSurface:
+    """The surface through ``points`` (N, 3) with unit ``normals`` (N, 3; zero rows: no plane, sign
+    arbitrary), bridging gaps up to ``bridge`` (N,) long (0: none) and reaching ``reach`` (N,) or a
+    scalar past the rims; lengths in the points' unit."""
+
+    def __init__(self, points: np.ndarray, normals: np.ndarray, bridge: np.ndarray,
+                 reach: np.ndarray | float = 0.0, k: int = 8) -> None:
+        self.points = np.asarray(points, dtype=np.float64)
+        self.normals = np.asarray(normals, dtype=np.float64)
+        planar = np.any(self.normals != 0.0, axis=1)
+        self.bridge = np.where(planar, np.asarray(bridge, dtype=np.float64), 0.0)
+        self.reach = np.where(planar, np.broadcast_to(np.asarray(reach, dtype=np.float64), planar.shape), 0.0)
+        self.k = int(min(k, len(self.points)))
+        self.tree = cKDTree(self.points)
+
+    def distance(self, x: np.ndarray, chunk: int = 65_536) -> np.ndarray:
+        """(M,) distance from each row of ``x`` (M, 3) to the surface (see the module docstring)."""
+        x = np.asarray(x, dtype=np.float64)
+        out = np.empty(len(x))
+        for start in range(0, len(x), chunk):
+            out[start:start + chunk] = self._distance(x[start:start + chunk])
+        return out
+
+    def _distance(self, x: np.ndarray) -> np.ndarray:
+        dist, idx = self.tree.query(x, k=self.k, workers=-1)
+        dist, idx = dist.reshape(len(x), self.k), idx.reshape(len(x), self.k)
+        first = idx[:, 0]
+        n = self.normals[first]                                          # (M, 3)
+        # The k nearest can all lie on the nearest point's own slice: also take the point nearest
+        # to x moved away from it by half the gap length, which finds the next slice across a gap.
+        toward = self.points[first] - x
+        toward -= np.einsum("mi,mi->m", toward, n)[:, None] * n
+        toward /= np.maximum(np.linalg.norm(toward, axis=1, keepdims=True), 1e-300)
+        _, far = self.tree.query(x - 0.5 * self.bridge[first, None] * toward, k=1, workers=-1)
+        idx = np.concatenate([idx, np.asarray(far).reshape(-1, 1)], axis=1)
+        offset = self.points[idx] - x[:, None]                           # (M, k + 1, 3)
+        dist = np.linalg.norm(offset, axis=2)
+        across = np.einsum("mki,mi->mk", offset, n)
+        inplane = offset - across[..., None] * n[:, None]
+        # neighbours on the other side of x from the nearest, within the nearest's gap length
+        opposite = (np.einsum("mki,mi->mk", inplane, inplane[:, 0]) < 0) & (dist <= self.bridge[first, None])
+        opposite[:, 0] = False
+        has = opposite.any(axis=1)
+        j = np.argmax(opposite, axis=1)                                  # the closest opposite one
+        rows = np.arange(len(x))
+        n_j = self.normals[idx[rows, j]]
+        n_j = np.where((np.einsum("mi,mi->m", n_j, n) < 0)[:, None], -n_j, n_j)
+        a0 = -across[:, 0]                                               # signed plane distances of x
+        aj = -np.einsum("mi,mi->m", offset[rows, j], n_j)
+        b0 = np.linalg.norm(inplane[:, 0], axis=1)
+        bj = np.linalg.norm(inplane[rows, j], axis=1)
+        between = np.abs((bj * a0 + b0 * aj) / np.maximum(b0 + bj, 1e-300))
+        beyond = np.sqrt(a0 ** 2 + np.maximum(b0 - self.reach[first], 0.0) ** 2)
+        return np.where(has, between, beyond)

@@ -1,0 +1,194 @@
+"""Robust local planes of a point cloud: normals, noise-free positions, outliers, gap scale.
+
+Ultrasound bone points are a thick, slice-structured band: segmentation noise along the beam
+(often near a millimetre), per-frame offsets from tracking, and false echoes in the acoustic shadow
+below the bone. Around every point a plane is fitted to its neighbours within a radius, with
+Gaussian distance weights (σ = radius / 2) and two rounds of robust re-weighting (neighbours far
+from the current plane, relative to its spread, lose their weight), so that false echoes and a
+few wrong slices do not tilt it.
+
+A neighbourhood inside one slice is a noisy line, and its best plane is the image plane, not the
+surface. A fit is therefore accepted only when the neighbours spread in both directions of the
+plane (``λ_mid ≥ 0.2·λ_max``) and, where the viewing direction of each point is known (a sweep:
+probe → point), when the plane faces the probe (incidence below 80°: the bone returns no echo
+beyond that). Points whose fit is refused at the first radius are fitted again at twice and four
+times it: sparse slices need a wider neighbourhood to see their neighbours.
+
+From the fit:
+
+* ``normal``: the plane's unit normal (sign arbitrary), ``0`` where no radius gave a plane;
+* ``offset``: the point's signed distance from its plane; ``point − offset·normal`` is the point
+  moved onto the plane (denoised);
+* ``spread``: the local noise, 1.4826 × the median distance of the 32 nearest points (on the
+  surface) from their planes (a standard deviation for Gaussian noise, not inflated by a few
+  outliers);
+* ``radius``: the radius of the accepted fit (the scale at which the data form a surface there:
+  about the gap between neighbouring slices where they are sparse), 0 where none.
+
+Neighbours come from a copy of the cloud voxelised at ``radius / 4``, so that ``max_neighbors``
+points cover the whole radius whatever the input density (a dense slice would otherwise fill the
+neighbourhood with points of one line). Lengths are in the cloud's unit (the pipeline calls it in
+mm, before normalisation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .voxel import voxel_downsample
+
+_ROBUST_ROUNDS = 2
+_ROBUST_SCALE = 2.0      # a neighbour's weight is exp(−½ (r / (2·spread))²)
+_SPAN = 0.2              # accept a plane only if λ_mid ≥ this × λ_max (not a line)
+_MAX_INCIDENCE_COS = float(np.cos(np.radians(80.0)))
+_MIN_NEIGHBORS = 6
+_SPARSE = 0.1            # fewer neighbours than this × the median: isolated (a rim has about ½)
+_WIDER = (1.0, 2.0, 4.0)  # radii tried, in units of the first
+_NOISE_NEIGHBORS = 32    # points over which the local noise (spread) is taken
+
+
+@dataclass
+class LocalPlanes:
+    """Per-point robust plane fits of ``N`` points (see the module docstring)."""
+
+    normal: np.ndarray    # (N, 3) unit normals, zero where there is no plane
+    offset: np.ndarray    # (N,) signed distance of each point from its plane
+    spread: np.ndarray    # (N,) robust spread (scaled MAD) of the neighbours about the plane
+    count: np.ndarray     # (N,) neighbours within the first radius (in its radius / 4 voxel copy)
+    radius: np.ndarray    # (N,) radius of the accepted fit, 0 where none
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(N,) bool: a plane was fitted."""
+        return self.radius > 0
+
+    def projected(self, points: np.ndarray) -> np.ndarray:
+        """``points`` (N, 3) moved onto their planes (unchanged where there is none)."""
+        return points - self.offset[:, None] * self.normal
+
+    def outliers(self, sigmas: float, floor: float = 0.0) -> np.ndarray:
+        """(N,) bool: points farther from their plane than ``sigmas`` × its spread (and than
+        ``floor``), or isolated: fewer neighbours within the first radius than a surface needs, or
+        than a tenth of the cloud's median count (false echoes deeper than the radius find only
+        each other, a sparse scatter)."""
+        far = self.valid & (np.abs(self.offset) > np.maximum(sigmas * self.spread, floor))
+        sparse = self.count < max(_MIN_NEIGHBORS, _SPARSE * float(np.median(self.count)) if len(self.count) else 0.0)
+        return far | sparse
+
+    def subset(self, keep: np.ndarray) -> "LocalPlanes":
+        """The fits of the points selected by a boolean mask or index array."""
+        return LocalPlanes(self.normal[keep], self.offset[keep], self.spread[keep], self.count[keep],
+                           self.radius[keep])
+
+    def scaled(self, factor: float) -> "LocalPlanes":
+        """The same planes with every length multiplied by ``factor`` (a change of unit)."""
+        return LocalPlanes(self.normal, self.offset * factor, self.spread * factor, self.count,
+                           self.radius * factor)
+
+
+def fit_local_planes(points: np.ndarray, radius: float, view: np.ndarray | None = None,
+                     max_neighbors: int = 64) -> LocalPlanes:
+    """Robust local planes of ``points`` (N, 3), first at ``radius`` (same unit), then at twice
+    and four times it where refused; ``view`` (N, 3): optional unit viewing directions (probe →
+    point). See the module docstring."""
+    pts = np.asarray(points, dtype=np.float64)
+    n = len(pts)
+    out = LocalPlanes(np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros(n, dtype=np.int64), np.zeros(n))
+    if n == 0 or radius <= 0:
+        return out
+    todo = np.arange(n)
+    for level, factor in enumerate(_WIDER):
+        r = radius * factor
+        normal, offset, count, ok = _fit_at(pts, todo, r, None if view is None else view[todo],
+                                            max_neighbors)
+        if level == 0:
+            out.count[:] = count
+        done = todo[ok]
+        out.normal[done], out.offset[done] = normal[ok], offset[ok]
+        out.radius[done] = r
+        todo = todo[~ok]
+        if len(todo) == 0:
+            break
+    out.spread[:] = _local_noise(out.projected(pts), out.offset, out.valid, _NOISE_NEIGHBORS)
+    return out
+
+
+def _local_noise(on_plane: np.ndarray, offset: np.ndarray, valid: np.ndarray, k: int) -> np.ndarray:
+    """(N,) 1.4826 × the median |offset| of the ``k`` fitted points nearest on the surface (by
+    their projections ``on_plane``, so that a point far from its plane does not pick neighbours
+    as far as itself): a robust standard deviation of the points about their planes, 0 where a
+    point has no plane. Taken over the points themselves, not the fit's voxel copy, whose means
+    average part of the noise away."""
+    out = np.zeros(len(on_plane))
+    rows = np.flatnonzero(valid)
+    if len(rows) == 0:
+        return out
+    _, idx = cKDTree(on_plane[rows]).query(on_plane[rows], k=int(min(k, len(rows))), workers=-1)
+    idx = idx.reshape(len(rows), -1)
+    out[rows] = 1.4826 * np.median(np.abs(offset[rows][idx]), axis=1)
+    return out
+
+
+def _fit_at(pts: np.ndarray, rows: np.ndarray, radius: float, view: np.ndarray | None,
+            max_neighbors: int, chunk: int = 4096):
+    """Fits of the points ``pts[rows]`` at one radius: normal, offset, neighbour count and whether
+    the plane is accepted."""
+    cloud = voxel_downsample(pts, radius / 4.0)
+    tree = cKDTree(cloud)
+    k = int(min(max_neighbors, len(cloud)))
+    m = len(rows)
+    normal, offset = np.zeros((m, 3)), np.zeros(m)
+    count, ok = np.zeros(m, dtype=np.int64), np.zeros(m, dtype=bool)
+    for start in range(0, m, chunk):
+        sl = slice(start, start + chunk)
+        p = pts[rows[sl]]
+        dist, idx = tree.query(p, k=k, distance_upper_bound=radius, workers=-1)
+        dist, idx = dist.reshape(len(p), k), idx.reshape(len(p), k)
+        inside = np.isfinite(dist)
+        nb = cloud[np.minimum(idx, len(cloud) - 1)]                        # (C, k, 3)
+        base = np.where(inside, np.exp(-0.5 * (dist / (radius / 2.0)) ** 2), 0.0)
+        weight = base
+        for round_ in range(_ROBUST_ROUNDS + 1):
+            wsum = np.maximum(weight.sum(axis=1), 1e-300)
+            centre = np.einsum("ck,cki->ci", weight, nb) / wsum[:, None]
+            d = nb - centre[:, None]
+            cov = np.einsum("ck,cki,ckj->cij", weight, d, d) / wsum[:, None, None]
+            vals, vecs = np.linalg.eigh(cov)                               # ascending
+            nrm = vecs[:, :, 0]
+            r = np.einsum("cki,ci->ck", d, nrm)
+            # robust scale for the re-weighting: the median distance from the plane (an echo among
+            # the neighbours does not inflate it as an RMS would)
+            sd = np.nan_to_num(1.4826 * np.nanmedian(np.where(inside, np.abs(r), np.nan), axis=1))
+            if round_ < _ROBUST_ROUNDS:
+                scale = np.maximum(_ROBUST_SCALE * sd, 1e-12 * radius)[:, None]
+                weight = base * np.exp(-0.5 * (r / scale) ** 2)
+        c = inside.sum(axis=1)
+        good = (c >= _MIN_NEIGHBORS) & (vals[:, 1] >= _SPAN * np.maximum(vals[:, 2], 1e-300))
+        if view is not None:
+            good &= np.abs(np.einsum("ci,ci->c", nrm, view[sl])) >= _MAX_INCIDENCE_COS
+        normal[sl], offset[sl] = nrm, np.einsum("ci,ci->c", p - centre, nrm)
+        count[sl], ok[sl] = c, good
+    return normal, offset, count, ok
+
+
+def shadowed(points: np.ndarray, view: np.ndarray, margin: float, depth: float = 10.0,
+             tolerance: float = 0.5) -> np.ndarray:
+    """(N,) bool: points with another point of the cloud above them on their own beam.
+
+    ``view`` (N, 3) are unit directions down each point's beam (probe → point). Bone returns the
+    first strong echo and shadows what lies beneath it, so a detection with a cloud point between
+    ``margin`` and ``depth`` closer to the probe along its beam (within ``tolerance`` of the beam) is
+    a false echo in that shadow. Lengths in the cloud's unit; ``margin`` must exceed the noise along
+    the beam left in the points (denoise first)."""
+    pts = np.asarray(points, dtype=np.float64)
+    out = np.zeros(len(pts), dtype=bool)
+    if len(pts) < 2:
+        return out
+    tree = cKDTree(pts)
+    for d in np.arange(margin, depth + 1e-9, tolerance / 2):  # probes half a tolerance apart
+        dist, _ = tree.query(pts - d * view, k=1, distance_upper_bound=tolerance, workers=-1)
+        out |= np.isfinite(dist)
+    return out

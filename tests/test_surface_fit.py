@@ -1,0 +1,116 @@
+"""Robust local planes and the data surface between points, on planes, slices and spheres."""
+
+import numpy as np
+import pytest
+
+from ultraboneudf.geometry.support import DataSurface
+from ultraboneudf.geometry.surface_fit import fit_local_planes
+
+
+def noisy_plane(n=20_000, noise=0.5, seed=0, half=30.0):
+    """Points of z = 0 over [−half, half]² (mm) with Gaussian noise of ``noise`` mm along z."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-half, half, (n, 2))
+    return np.c_[xy, rng.normal(0.0, noise, n)]
+
+
+def slices(spacing=1.5, step=0.15, noise=0.0, half=20.0, seed=0):
+    """Lines y = const on z = 0 every ``spacing`` mm (a sweep's slices), points every ``step`` mm,
+    noise along z."""
+    rng = np.random.default_rng(seed)
+    xs = np.arange(-half, half, step)
+    pts = np.concatenate([np.c_[xs, np.full_like(xs, y), np.zeros_like(xs)]
+                          for y in np.arange(-half, half + 1e-9, spacing)])
+    pts[:, 2] += rng.normal(0.0, noise, len(pts)) if noise else 0.0
+    return pts
+
+
+def test_planes_of_a_noisy_plane_give_its_normal_noise_and_the_denoised_points():
+    pts = noisy_plane()
+    pl = fit_local_planes(pts, 4.0)
+    inner = np.abs(pts[:, :2]).max(axis=1) < 25
+    assert pl.valid[inner].all()
+    assert np.percentile(np.abs(pl.normal[inner, 2]), 1) > 0.99 and np.abs(pl.normal[inner, 2]).min() > 0.97
+    # the spread is the noise (σ = 0.5 mm; a point's distance from a plane it helped fit is ~10%
+    # smaller), the projection removes most of it
+    assert np.median(pl.spread[inner]) == pytest.approx(0.5, rel=0.15)
+    assert np.abs(pl.projected(pts)[inner, 2]).mean() < 0.25 * np.abs(pts[inner, 2]).mean()
+    assert np.all(pl.radius[inner] == 4.0)
+    assert pl.outliers(3.0)[inner].mean() < 0.01
+
+
+def test_false_echoes_below_the_surface_are_removed_or_moved_onto_it():
+    """False echoes 1.5–10 mm under a surface imaged from above: the plane test flags most of those
+    within the fit radius and the sparse deep scatter; projection moves others onto the surface; the
+    shadow test (points beneath another point along their beam) removes what is left."""
+    from ultraboneudf.geometry.surface_fit import shadowed
+
+    pts = noisy_plane(n=40_000, noise=0.3)
+    rng = np.random.default_rng(1)
+    near = np.c_[rng.uniform(-20, 20, (150, 2)), -rng.uniform(1.5, 3.5, 150)]
+    deep = np.c_[rng.uniform(-20, 20, (100, 2)), -rng.uniform(5.0, 10.0, 100)]
+    cloud = np.r_[pts, near, deep]
+    n = len(pts)
+    pl = fit_local_planes(cloud, 4.0)
+    out = pl.outliers(3.0, 0.4)
+    assert out[n:n + 150].mean() > 0.5 and out[n + 150:].mean() > 0.9
+    assert out[:n].mean() < 0.01                 # the surface itself
+    # the robust fit is not pulled toward them
+    assert np.abs(pl.offset[:n][np.abs(pts[:, :2]).max(axis=1) < 15]).mean() < 0.4
+    kept = pl.projected(cloud)[~out]
+    down = np.tile([0.0, 0.0, -1.0], (len(kept), 1))
+    clean = kept[~shadowed(kept, down, 1.5)]
+    inner = np.abs(clean[:, :2]).max(axis=1) < 25
+    assert np.abs(clean[inner, 2]).max() < 1.5   # no echo left under the surface
+    assert len(clean) > 0.98 * n
+
+
+def test_a_lone_slice_has_no_plane_unless_a_wider_radius_reaches_the_next():
+    # one noisy line: its best plane would be the image plane (normal along y), refused when the
+    # view direction (down the beam, −z) is known; slices 6 mm apart need the 8 mm radius
+    line = slices(spacing=100.0, noise=0.8, half=20.0)
+    down = np.tile([0.0, 0.0, -1.0], (len(line), 1))
+    assert not fit_local_planes(line, 4.0, view=down).valid.any()
+    sparse = slices(spacing=6.0, noise=0.3)
+    pl = fit_local_planes(sparse, 4.0, view=np.tile([0.0, 0.0, -1.0], (len(sparse), 1)))
+    inner = np.abs(sparse[:, :2]).max(axis=1) < 10
+    assert pl.valid[inner].mean() > 0.95 and np.all(pl.radius[inner][pl.valid[inner]] >= 8.0)
+    assert np.abs(pl.normal[inner][pl.valid[inner], 2]).min() > 0.95
+    # a clean line with no view: collinear, no plane
+    assert not fit_local_planes(slices(spacing=100.0), 4.0).valid.any()
+
+
+def test_data_surface_bridges_gaps_between_slices_but_not_past_the_rim():
+    pts = slices(spacing=5.0, step=0.2, half=10.0)           # lines y = −10, −5, 0, 5, 10
+    up = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    surface = DataSurface(pts, up, bridge=np.full(len(pts), 6.0))
+    q = np.array([[0.0, 2.5, 0.3],    # midway between two slices, 0.3 mm above: 0.3
+                  [0.0, 1.0, 0.5],    # near one slice: the plane, not the 1 mm to the line
+                  [0.0, 0.5, -0.2],
+                  [0.0, 12.0, 0.3],   # 2 mm past the last slice: the distance to it
+                  [25.0, 0.0, 0.0]])   # beyond the lines' ends (x ≤ 9.8): to the last point
+    np.testing.assert_allclose(surface.distance(q), [0.3, 0.5, 0.2, np.hypot(2.0, 0.3), 15.2],
+                               atol=1e-9)
+    # gaps longer than the bridge stay open; a rim reach extends past the last points
+    narrow = DataSurface(pts, up, bridge=np.full(len(pts), 2.0))
+    assert narrow.distance(q[:1])[0] == pytest.approx(np.hypot(2.5, 0.3))
+    reach = DataSurface(pts, up, bridge=np.zeros(len(pts)), reach=1.5)
+    assert reach.distance(q[3:4])[0] == pytest.approx(np.hypot(0.5, 0.3))
+    # without planes it is the distance to the nearest point
+    bare = DataSurface(pts, np.zeros_like(pts), bridge=np.full(len(pts), 6.0), reach=3.0)
+    assert bare.distance(q[:1])[0] == pytest.approx(np.hypot(2.5, 0.3))
+
+
+def test_data_surface_follows_two_tilted_planes_across_a_gap():
+    # points on a sphere of radius 30 in two caps separated by a 3 mm band; across the band the
+    # interpolated plane distance stays within the sagitta of the 4 mm fits ((4/2)²/(2·30) ≈ 0.07 mm)
+    # plus that of the 1.5 mm half-gap (0.04 mm)
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(40_000, 3))
+    v = 30.0 * v / np.linalg.norm(v, axis=1, keepdims=True)
+    cap = (v[:, 2] > 20) & (np.abs(v[:, 0]) > 1.5)           # a 3 mm gap across x = 0
+    pts = v[cap]
+    pl = fit_local_planes(pts, 4.0)
+    surface = DataSurface(pts, pl.normal, bridge=4.0 * np.ones(len(pts)))
+    on = np.array([[0.0, y, np.sqrt(900 - y * y)] for y in np.linspace(-10, 10, 21)])
+    assert surface.distance(on).max() < 0.15
