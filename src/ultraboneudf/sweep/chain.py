@@ -312,9 +312,6 @@ def resolve_chain(frames: FrameTransforms, calibration: Calibration | None = Non
             if path is not None:
                 ref = cand
                 break
-        if ref == "Tracker":
-            notes.append("no Reference frame reachable: points are in the Tracker (camera) frame and "
-                         "move with it")
         if ref is None and forced is not None:
             ref = forced.to
             path = route(ref)
@@ -379,6 +376,10 @@ def resolve_chain(frames: FrameTransforms, calibration: Calibration | None = Non
     if not ok.any():
         used = ", ".join(s.name for s in steps if s.origin == "frame")
         raise InputError(f"{src}: no frame has a valid pose (status INVALID in every frame for {used})")
+    if ref == "Tracker" and reference is None:
+        warnings.warn(f"{src}: no Reference frame in the chain: the points are in the Tracker "
+                      f"(camera) frame, so patient motion during the sweep is not compensated",
+                      SweepWarning, stacklevel=3)
     bad = int((~ok).sum())
     if bad:
         first_bad = int(np.flatnonzero(~ok)[0])
