@@ -91,7 +91,7 @@ def _write_overlays(sweep, masks: np.ndarray, folder: Path) -> list[Path]:
         tiles = [overlay(sweep.images[i], masks[i], dilate=max(1, sweep.height // 300)) for i in idx]
         path = folder / f"overlay_{s // per_sheet:03d}.png"
         save_png(contact_sheet(tiles, [Path(sweep.frame_names[i]).name for i in idx], columns=6,
-                               tile_width=320), path, max_colours=128)
+                               tile_width=320), path, greys=64)
         written.append(path)
     return written
 
