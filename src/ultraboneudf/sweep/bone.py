@@ -61,12 +61,15 @@ class BoneReport:
 
 
 def sweep_region(sweep: Sweep) -> tuple[int, int, int, int]:
-    """The imaged region of a sweep's frames, within the calibration's clip rectangle if any."""
+    """The imaged region of a sweep's frames ``(column, row, width, height)``: the lit part of the
+    frames, within the calibration's clip rectangle if any. Its top row is the transducer face
+    (depth 0): the clip's top when the calibration gives one (what lies below it may be dark
+    water), else the first lit row."""
     c0, r0, w, h = imaged_region(sweep.images)
     clip = sweep.meta.get("clip_rectangle_px")
     if clip:
-        a0, b0 = max(c0, clip[0]), max(r0, clip[1])
-        a1, b1 = min(c0 + w, clip[0] + clip[2]), min(r0 + h, clip[1] + clip[3])
+        a0, a1 = max(c0, clip[0]), min(c0 + w, clip[0] + clip[2])
+        b0, b1 = clip[1], min(r0 + h, clip[1] + clip[3])
         if a1 > a0 and b1 > b0:
             c0, r0, w, h = a0, b0, a1 - a0, b1 - b0
     return int(c0), int(r0), int(w), int(h)

@@ -2,13 +2,17 @@
 
 Bone reflects almost all of the ultrasound: on a B-mode frame its surface is a bright, thin echo
 *with an acoustic shadow below it*, while soft-tissue interfaces (fascia, the skin line) are bright
-lines with tissue speckle below them. The detector scores every pixel by both properties and keeps,
-per scan line (image column; the beams run down the columns), the shallowest strong ridge.
+lines with tissue below them. The detector scores every pixel by both properties and keeps, per
+scan line (image column; the beams run down the columns), the *deepest* strong ridge: the last
+strong echo before the shadow, not the first bright line.
 
-Steps, on a copy block-averaged to about ``work_spacing_mm`` (all lengths below are in mm):
+Steps, inside the imaged region (the screen capture's black border excluded; its top row is depth
+0), on a copy block-averaged to about ``work_spacing_mm`` (all lengths below are in mm):
 
 1. **Normalise** intensities by the ``norm_percentile`` grey level and smooth with a Gaussian of
-   σ = ``smooth_mm``. The soft-tissue level ``T`` is the ``tissue_percentile`` of the result.
+   σ = ``smooth_mm``. The soft-tissue level ``T`` is the ``tissue_percentile`` of the result (both
+   from below ``min_depth_mm``). A frame whose ``T`` is below ``min_tissue_ratio`` of its bright
+   level images no soft tissue (water, gel): nothing is looked for.
 2. **Echo** = √(ridge · brightness): ridge = ``max(0, −λ_min(Hessian))·σ²/ridge_ref`` at
    σ = ``ridge_mm`` (any orientation, so sloped bone flanks count); brightness =
    ``(g/T − 1)/bright_ref`` (how much brighter than tissue).
@@ -17,18 +21,24 @@ Steps, on a copy block-averaged to about ``work_spacing_mm`` (all lengths below 
    (depth scales ``shadow_decay_mm`` and ``shadow_far_mm``: a shadow right away, or after a grey
    zone as under cartilage); ``above`` is the mean over ``tissue_above_mm`` above the pixel (the
    tissue the beam crossed), at least ``T``. Fascia and the skin line have tissue below: no shadow.
-4. **Last echo** = ``1 − (strongest echo within last_echo_mm below)/(own echo)``: a fascia lying
-   just above a bone is not the last strong echo of its scan line; the bone is.
-5. **Score** = echo · shadow · last echo; rows shallower than ``min_depth_mm`` score 0.
+4. **Last echo** = ``1 − (strongest echo within last_echo_mm below)/(own echo)``: a fascia with
+   the deep fascia or the bone below it is not the last strong echo of its scan line; the bone is.
+5. **Score** = echo · shadow · last echo; the depth priors ``min_depth_mm`` (probe face, skin,
+   subcutaneous layer) and ``max_depth_mm`` zero what lies outside them. The calibration's pixel
+   spacing makes these depths exact.
 6. **Hysteresis**: pixels scoring ≥ ``low`` connected (8-neighbours) to a pixel ≥ ``high``;
    components narrower than ``min_length_mm`` are dropped.
 7. **Per scan line**, among accepted pixels scoring at least ``keep_fraction`` of the line's best,
-   the shallowest run; the bone surface is the score maximum of that run (reverberations inside
-   the shadow lie deeper and are dropped). The mask marks that pixel (and ``thickness_mm`` below)
-   at full resolution.
+   the deepest run; the bone surface is the score maximum of that run (reverberations inside the
+   shadow are weak and do not count as strong). The mask marks that pixel (and ``thickness_mm``
+   below) at full resolution.
+8. **Confidence** of the frame = summed score of its detections / imaged scan lines; frames below
+   ``min_confidence`` give nothing.
 
-Every parameter is a field of :class:`BoneDetector`; the defaults were tuned on the UltraBones100k
-sample frames and on the simulator's images.
+Across frames, :func:`ultraboneudf.sweep.bone.classical_bone_masks` adds the frame-to-frame
+consistency filter (:mod:`ultraboneudf.sweep.consistency`). Every parameter is a field of
+:class:`BoneDetector`; the defaults were tuned on the UltraBones100k sample frames, the PlusLibData
+bone and spine sweeps, and the simulator's images.
 """
 
 from __future__ import annotations
@@ -135,7 +145,10 @@ class BoneDetector:
             h, w = (img.shape[0] // k) * k, (img.shape[1] // k) * k
             img = img[:h, :w].reshape(h // k, k, w // k, k).mean(axis=(1, 3))
         px = s * k  # mm per working pixel
-        ref = np.percentile(img, self.norm_percentile)
+        # intensity levels from below the depth prior: the probe face and skin line above it are
+        # the brightest rows of many frames and would set the scale
+        top = min(int(np.ceil(self.min_depth_mm / px)), img.shape[0] - 1)
+        ref = np.percentile(img[top:], self.norm_percentile)
         img = img / ref if ref > 0 else img
         g = ndimage.gaussian_filter(img, self.smooth_mm / px)
         sig = self.ridge_mm / px
@@ -144,16 +157,16 @@ class BoneDetector:
         hxy = ndimage.gaussian_filter(img, sig, order=(1, 1))
         lam_min = 0.5 * (hxx + hyy) - np.sqrt(0.25 * (hxx - hyy) ** 2 + hxy ** 2)
         ridge = np.clip(-lam_min * sig ** 2 / self.ridge_ref, 0.0, 1.0)
-        tissue_level = float(np.percentile(g, self.tissue_percentile))
+        tissue_level = float(np.percentile(g[top:], self.tissue_percentile))
         tissue = max(tissue_level, 1e-3)
         bright = np.clip((g / tissue - 1.0) / self.bright_ref, 0.0, None)
         shadow = self._shadow(g, px, tissue)
         echo = np.sqrt(ridge * bright)
         score = echo * shadow * self._last_echo(echo, px)
-        score[: int(np.ceil(self.min_depth_mm / px))] = 0.0
+        score[:top] = 0.0
         if self.max_depth_mm > 0:
             score[int(np.floor(self.max_depth_mm / px)) + 1:] = 0.0
-        g_bright = float(np.percentile(g, self.norm_percentile))
+        g_bright = float(np.percentile(g[top:], self.norm_percentile))
         return score, k, tissue_level / max(g_bright, 1e-9)
 
     def _last_echo(self, echo: np.ndarray, px: float) -> np.ndarray:
@@ -343,15 +356,16 @@ class FrameDetection:
     tissue_ratio: float
 
 
-def imaged_region(images: np.ndarray, min_fraction: float = 0.05) -> tuple[int, int, int, int]:
+def imaged_region(images: np.ndarray, min_fraction: float = 0.01) -> tuple[int, int, int, int]:
     """The imaged part of a stack of frames ``(F, H, W)``: ``(column, row, width, height)``, the
-    bounding box of the columns and rows where at least ``min_fraction`` of the pixels (over all
-    frames) carry signal. Screen-captured frames (PLUS with a frame grabber) have black borders
-    around the ultrasound image; their edges would look like echoes over a shadow."""
+    bounding box of the columns and rows in which at least ``min_fraction`` of the pixels carry
+    signal in some frame. Screen-captured frames (PLUS with a frame grabber) have black borders
+    around the ultrasound image; their edges would look like echoes over a shadow. (Water in a
+    phantom tank is black too, but echoes cross it somewhere in a sweep.)"""
     im = np.asarray(images)
-    sub = im[:: max(1, len(im) // 16)] > 0
-    cols = np.flatnonzero(sub.mean(axis=(0, 1)) >= min_fraction)
-    rows = np.flatnonzero(sub.mean(axis=(0, 2)) >= min_fraction)
+    lit = im.max(axis=0) > 0
+    cols = np.flatnonzero(lit.mean(axis=0) >= min_fraction)
+    rows = np.flatnonzero(lit.mean(axis=1) >= min_fraction)
     if len(cols) == 0 or len(rows) == 0:
         return 0, 0, im.shape[2], im.shape[1]
     return int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)
