@@ -49,6 +49,25 @@ def last_line(text: str) -> str:
     return lines[-1] if lines else ""
 
 
+def overlay_sheet(sweep_path: Path, cal: Path, out: Path, n: int = 8, crop=None) -> None:
+    """``n`` frames with the classical detector's bone surface in red (the docs' overlay picture)."""
+    from ultraboneudf.sweep import read_sweep
+    from ultraboneudf.sweep.bone import classical_bone_masks
+    from ultraboneudf.sweep.figures import contact_sheet, overlay, save_png
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sweep = read_sweep(sweep_path, calibration=cal)
+    masks, _ = classical_bone_masks(sweep)
+    frames = np.linspace(0, sweep.n_frames - 1, n).round().astype(int)
+    tiles = []
+    for i in frames:
+        im = overlay(sweep.images[i], masks[i], dilate=2)
+        tiles.append(im.crop((crop[0], crop[1], crop[0] + crop[2], crop[1] + crop[3])) if crop else im)
+    save_png(contact_sheet(tiles, [sweep.frame_names[i] for i in frames], columns=4, tile_width=225),
+             out, greys=64)
+
+
 def figure(sweep_path: Path, cal: Path, mesh_path: Path, out: Path, crop=None) -> None:
     import trimesh
     from PIL import Image
@@ -113,6 +132,8 @@ def main() -> int:
             if code == 0 and args.figures is not None:
                 figure(args.plus / name, args.plus / cfg, mesh, args.figures / f"{RECONSTRUCT[name]}_result.png",
                        crop=(170, 0, 480, 616))
+                overlay_sheet(args.plus / name, args.plus / cfg,
+                              args.figures / f"{RECONSTRUCT[name]}_overlays.png", crop=(170, 0, 480, 616))
     (args.out / "results.json").write_text(json.dumps(results, indent=1, ensure_ascii=False) + "\n")
     return 0
 

@@ -226,8 +226,6 @@ def _holdings(frames: FrameTransforms, calibration: Calibration | None) -> str:
     held = f"the file holds {', '.join(n + 'Transform' for n in frames.names()) or 'no transforms'}"
     if calibration is not None:
         held += f"; {Path(calibration.source).name} holds {calibration.describe()}"
-    else:
-        held += "; no calibration given"
     return held
 
 

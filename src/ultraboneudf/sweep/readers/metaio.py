@@ -6,9 +6,12 @@ optionally ``…TransformStatus`` (``OK``/``INVALID``; INVALID frames are skippe
 means OK), ``…Timestamp``, ``…FrameNumber``, ``…ImageStatus``.
 
 Geometry follows PLUS: the image frame is in *pixels* with the centre of the first pixel at the
-origin (``pixel_offset = 0``); ``ImageToReference`` (= ``ImageToProbe`` calibration × tracking)
-carries the mm-per-pixel scaling; ``ElementSpacing`` is not used for geometry. Frames stored in an
-orientation other than ``MF`` are flipped to ``MF`` on reading (PLUS calibrations are for ``MF``).
+origin (``pixel_offset = 0``); the pose chain to the reference (``ImageToReference`` directly, or
+``ReferenceToTracker⁻¹ · ProbeToTracker · ImageToProbe`` with the calibration from the PLUS
+configuration, see :mod:`ultraboneudf.sweep.chain`) carries the mm-per-pixel scaling;
+``ElementSpacing`` is not used for geometry. Frames stored in an orientation other than ``MF`` are
+flipped to ``MF`` on reading (PLUS calibrations are for ``MF``; see
+:mod:`ultraboneudf.sweep.readers.plus_common`).
 """
 
 from __future__ import annotations
