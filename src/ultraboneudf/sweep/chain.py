@@ -18,7 +18,7 @@ Rules:
 * The chain must contain at least one per-frame transform that is not a pixel offset (the
   tracking), or the frames have no pose.
 * The reference is ``--reference``, else the configuration's ``ReferenceCoordinateFrame``, else
-  ``Reference`` when reachable, else ``Tracker`` (said in the log: points then move with the
+  ``Reference`` when reachable, else ``Tracker`` (with a warning: the points then move with the
   camera, not the patient).
 * ``--transform NAME`` forces that per-frame transform into the chain.
 * A frame is used when every per-frame transform of the chain has status ``OK`` in it.
@@ -143,7 +143,7 @@ class PoseChain:
         ok: ``(F,)`` frames whose every per-frame transform of the chain is valid.
         steps: the transforms from the pixel frame to the reference, in order of application.
         pixel_frame, reference_frame: the chain's two ends.
-        notes: sentences for the log (the crop frame chosen, the Tracker fallback, …).
+        notes: sentences for the log (e.g. that the stored frames are a crop).
     """
 
     matrices: np.ndarray
@@ -159,12 +159,6 @@ class PoseChain:
     def formula(self) -> str:
         """``'ReferenceToTracker⁻¹ · ProbeToTracker · ImageToProbe'`` (matrix product order)."""
         return " · ".join(s.label() for s in reversed(self.steps))
-
-    def describe(self) -> str:
-        """One sentence for the log."""
-        cal = f" (calibration from {Path(self.calibration_source).name})" if self.calibration_source else ""
-        return (f"pose chain {self.pixel_frame}→{self.reference_frame} = {self.formula()}{cal}; "
-                f"points in the {self.reference_frame} frame")
 
     def as_dict(self) -> dict:
         """JSON-ready summary (for sidecars)."""
@@ -260,7 +254,8 @@ def resolve_chain(frames: FrameTransforms, calibration: Calibration | None = Non
         for e in crops:
             other = e.to if e.frm == "Image" else e.frm
             degree = sum(other in (x.frm, x.to) for x in edges)
-            if degree == 1 and is_pixel_offset(frames.matrices(e.name)[0][frames.matrices(e.name)[1]]):
+            mats, valid = frames.matrices(e.name)
+            if degree == 1 and is_pixel_offset(mats[valid]):
                 pixel = other
                 notes.append(f"{e.name}Transform is a fixed pixel offset: the stored frames are the "
                              f"{other} crop, mapped back to Image through it")
@@ -319,7 +314,7 @@ def resolve_chain(frames: FrameTransforms, calibration: Calibration | None = Non
         target = ref or "Reference"
         hint = ""
         has_probe = any("Probe" in (e.frm, e.to) for e in edges)
-        has_image_probe = any({e.frm, e.to} == {pixel if pixel == "Image" else "Image", "Probe"} for e in edges)
+        has_image_probe = any({e.frm, e.to} == {"Image", "Probe"} for e in edges)
         if has_probe and not has_image_probe:
             hint = ("; the probe calibration ImageToProbe is missing: give the PLUS device-set .xml "
                     "or a 4×4 matrix file with --calibration")

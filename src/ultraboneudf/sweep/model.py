@@ -9,8 +9,9 @@ the top, where the probe touches the skin; the beams run down the columns), and
 ``P = diag(sx, sy, 1, 1) · translate(o, o, 0)`` places the pixel centre ``(c, r)`` at image-plane
 millimetres ``((c + o)·sx, (r + o)·sy, 0)`` (a calibration with slightly non-perpendicular image
 axes adds a shear, see :func:`~ultraboneudf.sweep.transforms.pixel_to_image_matrix`).
-``image_to_world[i]`` is rigid (rotation + translation, mm → mm). The UltraBones100k layout puts pixel centres at ``o = 0.5``; PLUS/ITK/Slicer put the
-centre of the first pixel at the origin, ``o = 0``. :meth:`Sweep.pixel_to_world` gives the whole
+``image_to_world[i]`` is rigid (rotation + translation, mm → mm). The UltraBones100k layout puts
+pixel centres at ``o = 0.5``; PLUS/ITK/Slicer put the centre of the first pixel at the origin,
+``o = 0``. :meth:`Sweep.pixel_to_world` gives the whole
 product, which is what every reader and writer round-trips exactly.
 
 The world frame is whatever frame the input's transforms map to (the CT frame for the

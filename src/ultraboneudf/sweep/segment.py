@@ -220,15 +220,16 @@ class BoneDetector:
             image: ``(H, W)`` B-mode frame.
             spacing_mm: pixel size ``(sx, sy)`` in mm (or one number).
             region: the imaged part of the frame, ``(column, row, width, height)`` in pixels
-                (its top row is the transducer face, depth 0); the whole frame by default.
+                (its top row is the transducer face, depth 0); by default the frame's lit part
+                (:func:`imaged_region`).
 
         Returns:
             :class:`FrameDetection`: per scan line the surface row and its score, and the frame's
             confidence.
         """
         img = np.asarray(image, dtype=np.float64)
-        full_h, full_w = img.shape
-        c0, r0, rw, rh = (0, 0, full_w, full_h) if region is None else (int(v) for v in region)
+        full_w = img.shape[1]
+        c0, r0, rw, rh = (int(v) for v in (imaged_region(img[None]) if region is None else region))
         rows = np.full(full_w, np.nan)
         scores = np.zeros(full_w)
         crop = img[r0:r0 + rh, c0:c0 + rw]

@@ -96,7 +96,7 @@ def _field(header: dict, name: str) -> str | None:
     return None
 
 
-def _companion_fields(transforms, n: int, path: Path) -> tuple[dict[int, dict[str, str]], str]:
+def _companion_fields(transforms) -> tuple[dict[int, dict[str, str]], str]:
     """Per-frame fields merged from one or more transform sequence files (3D Slicer writes one
     ``.seq.mha`` per transform), matched to the images by frame index."""
     files = [transforms] if isinstance(transforms, (str, os.PathLike)) else list(transforms)
@@ -170,7 +170,7 @@ def read(path: str | os.PathLike, masks: str | os.PathLike | None = None,
     per_frame = metaio.frame_fields({k: str(v) for k, v in header.items() if isinstance(v, str)})
     tsource: str | Path = path
     if transforms is not None:
-        per_frame, tsource = _companion_fields(transforms, n, path)
+        per_frame, tsource = _companion_fields(transforms)
     elif not any(k.endswith("Transform") for f in per_frame.values() for k in f):
         raise InputError(f"{path}: no per-frame transforms (Seq_FrameNNNN_…Transform fields), so "
                          f"the frames have no pose; give the transform sequence (--transforms FILE)")
