@@ -352,7 +352,7 @@ def test_sweep_options_on_the_command_line(tmp_path, capsys):
     np.savetxt(cloud, np.random.default_rng(0).random((300, 3)))
     assert main(["reconstruct", str(cloud), "--calibration", str(cfg), "-o", str(tmp_path / "m.ply")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--calibration apply to tracked sweeps" in err[0]
+    assert len(err) == 1 and "--calibration applies to tracked sweeps" in err[0]
 
 
 def test_warnings_are_one_line_each_and_dropped_on_failure(tmp_path, capsys):

@@ -56,7 +56,8 @@ def read_input(path: Path, args: argparse.Namespace,
         return res.points.points, res.points.probe_position, res.info
     given = sweep_options_given(args)
     if given:
-        raise InputError(f"{path}: {', '.join(given)} apply to tracked sweeps, not to a point cloud file")
+        raise InputError(f"{path}: {', '.join(given)} {'apply' if len(given) > 1 else 'applies'} to "
+                         f"tracked sweeps, not to a point cloud file")
     return load_points(path), None, None
 
 

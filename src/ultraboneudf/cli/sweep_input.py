@@ -86,9 +86,10 @@ def read_options(args: argparse.Namespace, path: Path) -> dict[str, Any]:
     chain = {name: getattr(args, name) for name in CHAIN_OPTIONS if getattr(args, name, None)}
     if layout == "ultrabones":
         if chain:
-            raise InputError(f"{path}: {', '.join('--' + k.replace('_', '-') for k in chain)} apply to "
-                             f"PLUS/Slicer sequence files; an UltraBones100k folder carries its "
-                             f"calibration in calibration.json")
+            raise InputError(f"{path}: {', '.join('--' + k.replace('_', '-') for k in chain)} "
+                             f"{'apply' if len(chain) > 1 else 'applies'} to PLUS/Slicer sequence "
+                             f"files; an UltraBones100k folder carries its calibration in "
+                             f"calibration.json")
         if args.mask_dir is not None:
             opts["mask_dir"] = args.mask_dir
         return opts
