@@ -36,7 +36,7 @@ def reference_poses(n=N):
 
 def write_mha(path: Path, transforms: dict[str, list[np.ndarray]], n=N, w=W, h=H,
               orientation="MF", status: dict[str, list[str]] | None = None, pixels=None) -> Path:
-    lines = [f"ObjectType = Image", "NDims = 3", f"DimSize = {w} {h} {n}", "ElementType = MET_UCHAR"]
+    lines = ["ObjectType = Image", "NDims = 3", f"DimSize = {w} {h} {n}", "ElementType = MET_UCHAR"]
     if orientation is not None:
         lines.append(f"UltrasoundImageOrientation = {orientation}")
     for i in range(n):

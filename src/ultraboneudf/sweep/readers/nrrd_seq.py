@@ -30,7 +30,7 @@ import numpy as np
 from ...errors import InputError
 from ...io import atomic_write_bytes
 from ..model import Sweep
-from ..transforms import format_matrix, split_scaled_transform
+from ..transforms import format_matrix
 from . import metaio
 
 
