@@ -7,7 +7,7 @@ and calibration priors, per-frame confidence, and the frame-to-frame consistency
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
@@ -29,6 +29,7 @@ class BoneReport:
         no_tissue_frames: frames skipped because they image no soft tissue (water, gel).
         low_confidence_frames: frames whose detections were dropped for low confidence.
         consistency: what the frame-to-frame filter removed (``None`` when off).
+        frames_with_bone: frames that kept at least one surface point.
     """
 
     region_px: tuple[int, int, int, int]
@@ -37,7 +38,6 @@ class BoneReport:
     low_confidence_frames: int
     consistency: dict | None = None
     frames_with_bone: int = 0
-    notes: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return {"region_px": list(self.region_px), "frames_with_bone": self.frames_with_bone,
