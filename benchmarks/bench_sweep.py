@@ -29,6 +29,7 @@ import numpy as np
 import trimesh
 
 from ultraboneudf.sweep import BoneDetector, read_sweep, sweep_to_points
+from ultraboneudf.sweep.bone import classical_bone_masks
 from ultraboneudf.sweep.figures import contact_sheet, overlay, render_points, save_png
 from ultraboneudf.sweep.readers.images import read_image
 from ultraboneudf.synth.simulator import SimulationConfig, simulate_sweep
@@ -54,7 +55,7 @@ def bench_bone(path: Path, detector: BoneDetector, figures: Path | None) -> dict
     t_sim = time.perf_counter() - t0
     s = sim.config.spacing_mm
     t0 = time.perf_counter()
-    det_masks = detector.segment_stack(sim.sweep.images, sim.sweep.spacing_mm)
+    det_masks, _ = classical_bone_masks(sim.sweep, detector)
     t_seg = time.perf_counter() - t0
     p_det, r_det = mask_precision_recall(det_masks, sim.true_masks, s, TOL_MM)
     p_pred, r_pred = mask_precision_recall(sim.pred_masks, sim.true_masks, s, TOL_MM)
@@ -78,9 +79,9 @@ def bench_bone(path: Path, detector: BoneDetector, figures: Path | None) -> dict
 
 def real_figures(sample: Path, detector: BoneDetector, figures: Path) -> dict:
     sweep = read_sweep(sample)
-    masks = detector.segment_stack(sweep.images, sweep.spacing_mm)
+    masks, _ = classical_bone_masks(sweep, detector)
     tiles = [overlay(sweep.images[i], masks[i], dilate=3) for i in range(sweep.n_frames)]
-    save_png(contact_sheet(tiles, [f"{n}" for n in sweep.frame_names], columns=6, tile_width=300),
+    save_png(contact_sheet(tiles, [f"{n}" for n in sweep.frame_names], columns=6, tile_width=240),
              figures / "sweep_real_overlays.jpg")
     ex_files = sorted((sample / "examples").glob("*.png"))
     ex_tiles = []

@@ -11,6 +11,7 @@ import argparse
 import importlib
 import sys
 import traceback
+import warnings
 
 from .._version import __version__
 from ..errors import InputError
@@ -36,14 +37,42 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _InputWarnings:
+    """Collects tolerated input defects (:class:`~ultraboneudf.sweep.model.SweepWarning`) during a
+    command and prints them, one line each, when it succeeds; a failed command prints only its
+    one error line."""
+
+    def __init__(self, command: str) -> None:
+        from ..sweep.model import SweepWarning
+
+        self.command, self.category, self.lines = command, SweepWarning, []
+        self.default = warnings.showwarning
+
+    def show(self, message, category, filename, lineno, file=None, line=None) -> None:
+        if issubclass(category, self.category):
+            self.lines.append(f"ultraboneudf {self.command}: warning: {message}")
+        else:
+            self.default(message, category, filename, lineno, file, line)
+
+    def flush(self) -> None:
+        for text in dict.fromkeys(self.lines):
+            print(text, file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2
+    collected = _InputWarnings(args.command)
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", collected.category)
+            warnings.showwarning = collected.show
+            code = int(args.func(args) or 0)
+        collected.flush()
+        return code
     except InputError as exc:
         print(f"ultraboneudf {args.command}: error: {exc}", file=sys.stderr)
         return 2

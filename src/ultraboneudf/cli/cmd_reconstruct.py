@@ -9,10 +9,12 @@ from pathlib import Path
 import numpy as np
 
 from ..config import PRESETS
+from ..errors import InputError
 from ..io import check_mesh_path, load_points, sha256_file
 from ..methods import METHODS
 from ..pipeline import reconstruct
 from ..progress import Progress
+from .sweep_input import add_sweep_options, sweep_options_given, sweep_points
 
 def add_run_options(p: argparse.ArgumentParser, default_preset: str) -> None:
     """Options shared by ``reconstruct`` and ``demo``."""
@@ -30,30 +32,39 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "reconstruct", help="reconstruct a bone surface mesh from a point cloud or a tracked sweep",
         description="Reconstruct a mesh (mm, input frame) from a point cloud file (.xyz .txt .csv .ply "
-                    ".npy .npz, mm) or a tracked sweep (folder, .mha/.mhd, .seq.nrrd). Writes OUT and a "
-                    "JSON sidecar OUT.json with the resolved configuration, timings and counts.")
-    p.add_argument("input", type=Path, help="point cloud file or sweep")
+                    ".npy .npz, mm) or a tracked sweep (folder, PLUS .mha/.mhd/.igs.nrrd with its "
+                    "--calibration, Slicer .seq.nrrd). Writes OUT and a JSON sidecar OUT.json with the "
+                    "resolved configuration, timings, counts and, for a sweep, its pose chain, spacing "
+                    "and segmentation.")
+    p.add_argument("input", type=Path, help="point cloud file or tracked sweep")
     p.add_argument("-o", "--output", type=Path, required=True, help="output mesh (.ply, .obj or .stl)")
     p.add_argument("--method", default="ultraboneudf", choices=sorted(METHODS), help="method (default: ultraboneudf)")
     add_run_options(p, "official")
+    add_sweep_options(p)
     p.set_defaults(func=run)
 
 
-def read_input(path: Path, progress: Progress) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points (mm) from a cloud file, or compounded from a sweep (a folder or a sequence file), and
-    for a sweep the probe position of each point (mm, same frame; ``None`` for a cloud file)."""
-    from ..sweep import is_sweep_path, sweep_to_points
+def read_input(path: Path, args: argparse.Namespace,
+               progress: Progress) -> tuple[np.ndarray, np.ndarray | None, dict | None]:
+    """Points (mm) from a cloud file, or compounded from a sweep (a folder or a sequence file); for
+    a sweep also the probe position of each point (mm, same frame) and what the sweep gave
+    (pose chain, spacing, shear, segmentation; for the sidecar), else ``None``."""
+    from ..sweep import is_sweep_path
 
     if path.exists() and is_sweep_path(path):
-        cp = sweep_to_points(path, progress=progress)
-        return cp.points, cp.probe_position
-    return load_points(path), None
+        res = sweep_points(path, args, progress)
+        return res.points.points, res.points.probe_position, res.info
+    given = sweep_options_given(args)
+    if given:
+        raise InputError(f"{path}: {', '.join(given)} {'apply' if len(given) > 1 else 'applies'} to "
+                         f"tracked sweeps, not to a point cloud file")
+    return load_points(path), None, None
 
 
 def run(args: argparse.Namespace) -> int:
     output = check_mesh_path(args.output)
     progress = Progress(quiet=args.quiet)
-    points, probe = read_input(args.input, progress)
+    points, probe, sweep_info = read_input(args.input, args, progress)
     overrides = {} if args.iters is None else {"train.iters": args.iters}
     rec = reconstruct(points, preset=args.preset, device=args.device, seed=args.seed, method=args.method,
                       assignments=args.assignments, progress=progress, source=str(args.input),
@@ -63,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
               "(see the loss history with --set train.iters=… or try another preset)", file=sys.stderr)
         return 1
     rec.input = {"path": str(args.input.resolve()), "sha256": sha256_file(args.input)}
+    if sweep_info is not None:
+        rec.input["sweep"] = sweep_info
     sidecar = rec.save(output)
     t = rec.timings
     progress.log(f"wrote {output} ({rec.counts['vertices']} vertices, {rec.counts['faces']} faces) and "

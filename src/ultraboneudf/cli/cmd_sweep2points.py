@@ -11,6 +11,7 @@ import numpy as np
 from ..errors import InputError
 from ..io import atomic_write_bytes
 from ..progress import Progress
+from .sweep_input import add_sweep_options, sweep_points
 
 POINT_SUFFIXES = (".ply", ".npz", ".npy", ".xyz", ".txt", ".csv")
 
@@ -27,16 +28,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, required=True,
                    help="output cloud: .ply (x y z + frame, beam, probe), .npz (all arrays), .npy, "
                         ".xyz/.txt/.csv (x y z frame)")
-    p.add_argument("--segment", default="auto",
-                   help="auto (the sweep's masks if any, else classical), masks, classical, or the "
-                        "path of a TorchScript (.pt) / ONNX (.onnx) model (default: auto)")
-    p.add_argument("--masks", type=Path, default=None,
-                   help="bone masks for the frames: folder of PNGs (matched by name or order), .npy or "
-                        ".npz (F×H×W)")
-    p.add_argument("--mask-dir", default=None,
-                   help="UltraBones100k layout: sub-folder of masks to use (default: masks)")
-    p.add_argument("--transform", default=None,
-                   help="MetaIO/NRRD: per-frame transform name (default: ImageToReference)")
     p.add_argument("--all-pixels", action="store_true",
                    help="keep every mask pixel (default: only the top boundary of each scan line, "
                         "the bone surface)")
@@ -45,27 +36,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--outlier-std", type=float, default=2.0,
                    help="outlier removal: threshold in standard deviations (default 2.0)")
     p.add_argument("--frame-step", type=int, default=1, help="use every N-th frame (default 1)")
-    p.add_argument("--detector", action="append", default=[], metavar="KEY=VALUE",
-                   help="classical detector option (mm), e.g. --detector high=0.4; repeatable")
-    p.add_argument("--threshold", type=float, default=0.5,
-                   help="learned model: probability threshold (default 0.5)")
     p.add_argument("--overlays", type=Path, default=None,
                    help="also write segmentation overlay contact sheets (PNG) to this folder")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    add_sweep_options(p)
     p.set_defaults(func=run)
-
-
-def _parse_kv(items: list[str]) -> dict[str, float]:
-    out = {}
-    for item in items:
-        if "=" not in item:
-            raise InputError(f"--detector {item!r}: expected KEY=VALUE")
-        k, v = item.split("=", 1)
-        try:
-            out[k.strip()] = float(v)
-        except ValueError:
-            raise InputError(f"--detector {item!r}: {v!r} is not a number") from None
-    return out
 
 
 def encode_points(path: Path, cp) -> bytes:
@@ -116,15 +91,12 @@ def _write_overlays(sweep, masks: np.ndarray, folder: Path) -> list[Path]:
         tiles = [overlay(sweep.images[i], masks[i], dilate=max(1, sweep.height // 300)) for i in idx]
         path = folder / f"overlay_{s // per_sheet:03d}.png"
         save_png(contact_sheet(tiles, [Path(sweep.frame_names[i]).name for i in idx], columns=6,
-                               tile_width=320), path, max_colours=128)
+                               tile_width=320), path, greys=64)
         written.append(path)
     return written
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..sweep import read_sweep, segment_sweep, sweep_to_points
-    from ..sweep.readers.images import load_mask_stack
-
     progress = Progress(quiet=args.quiet)
     out: Path = args.output
     if out.suffix.lower() not in POINT_SUFFIXES:
@@ -132,32 +104,17 @@ def run(args: argparse.Namespace) -> int:
                          f"{', '.join(POINT_SUFFIXES)}")
     if args.frame_step < 1:
         raise InputError(f"--frame-step must be ≥ 1, got {args.frame_step}")
-    read_options = {}
-    if args.mask_dir is not None:
-        read_options["mask_dir"] = args.mask_dir
-    if args.transform is not None:
-        read_options["transform"] = args.transform
-    with progress.stage("read sweep", None):
-        sweep = read_sweep(args.sweep, **read_options)
-    if args.masks is not None:
-        sweep = sweep.with_masks(load_mask_stack(args.masks, sweep.n_frames, sweep.image_size,
-                                                 [Path(n).stem for n in sweep.frame_names]))
-    if args.frame_step > 1:
-        sweep = sweep.subset(np.arange(0, sweep.n_frames, args.frame_step))
-    detector = _parse_kv(args.detector)
-    masks, method = segment_sweep(sweep, args.segment, detector, {"threshold": args.threshold}, progress)
-    cp = sweep_to_points(sweep.with_masks(masks), segment="masks", top_only=not args.all_pixels,
-                         remove_outliers=not args.no_outliers, outlier_k=args.outlier_k,
-                         outlier_std=args.outlier_std, progress=progress)
-    if args.frame_step > 1:
-        cp.frame_index = cp.frame_index * args.frame_step
+    res = sweep_points(args.sweep, args, progress, top_only=not args.all_pixels,
+                       remove_outliers=not args.no_outliers, outlier_k=args.outlier_k,
+                       outlier_std=args.outlier_std, frame_step=args.frame_step)
+    cp, sweep = res.points, res.sweep
     atomic_write_bytes(out, encode_points(out, cp))
     frames_with_bone = len(np.unique(cp.frame_index))
     lo, hi = cp.points.min(axis=0), cp.points.max(axis=0)
     print(f"sweep2points: {len(cp)} points from {frames_with_bone}/{sweep.n_frames} frames "
-          f"(segmentation: {method}); extent {np.round(hi - lo, 1).tolist()} mm; wrote {out}")
+          f"(segmentation: {res.method}); extent {np.round(hi - lo, 1).tolist()} mm; wrote {out}")
     if args.overlays is not None:
-        written = _write_overlays(sweep, masks, args.overlays)
+        written = _write_overlays(sweep, res.masks, args.overlays)
         if written:
             print(f"sweep2points: wrote {len(written)} overlay sheet(s) to {args.overlays}")
     return 0

@@ -6,11 +6,15 @@
 >>> cp.points, cp.frame_index, cp.beam_direction              # doctest: +SKIP
 
 Pieces: :class:`Sweep` (frames + poses in memory), readers/writers by layout
-(:func:`read_sweep`, :func:`write_sweep`: UltraBones100k folders, PLUS ``.mha``/``.mhd``, Slicer
-``.seq.nrrd``), :class:`BoneDetector` (classical segmentation), :class:`LearnedSegmenter`
+(:func:`read_sweep`, :func:`write_sweep`: UltraBones100k folders, PLUS ``.mha``/``.mhd``/``.igs.nrrd``,
+Slicer ``.seq.nrrd``), the PLUS pose chain and calibrations (:mod:`.chain`,
+:func:`read_calibration`), :class:`BoneDetector` and :func:`classical_bone_masks` (classical
+segmentation with the frame-to-frame consistency filter), :class:`LearnedSegmenter`
 (TorchScript/ONNX plug-in), :func:`compound` (mask pixels → world mm), outlier removal.
 """
 
+from .bone import classical_bone_masks
+from .calibration import Calibration, read_calibration
 from .compound import CompoundedPoints, compound, top_boundary
 from .learned import LearnedSegmenter, load_model
 from .model import Sweep, SweepWarning
@@ -21,7 +25,7 @@ from .segment import BoneDetector, segment_bone
 from .transforms import check_rigid, pixels_to_world, rigid_from_euler
 
 __all__ = [
-    "Sweep", "SweepWarning", "read_sweep", "write_sweep", "detect_layout", "is_sweep_path", "LAYOUTS",
+    "Sweep", "SweepWarning", "read_sweep", "read_calibration", "Calibration", "classical_bone_masks", "write_sweep", "detect_layout", "is_sweep_path", "LAYOUTS",
     "BoneDetector", "segment_bone", "LearnedSegmenter", "load_model", "segment_sweep",
     "CompoundedPoints", "compound", "top_boundary", "statistical_outlier_mask", "radius_outlier_mask",
     "sweep_to_points", "points_from_sweep", "rigid_from_euler", "check_rigid", "pixels_to_world",

@@ -117,7 +117,7 @@ def compound(sweep: Sweep, masks: np.ndarray | None = None, top_only: bool = Fal
         pts = pixels_to_world(p2w[i], cols, rows)
         # the scan line's origin: image-plane depth 0, i.e. row = −offset
         probe = pixels_to_world(p2w[i], cols, np.full(len(cols), -sweep.pixel_offset))
-        beam = sweep.image_to_world[i, :3, 1]
+        beam = p2w[i, :3, 1]  # along the scan line (a sheared calibration tilts it off ŷ)
         parts.append(CompoundedPoints(
             points=pts, frame_index=np.full(len(rows), i, dtype=np.int64), probe_position=probe,
             beam_direction=np.broadcast_to(beam / np.linalg.norm(beam), pts.shape).copy(),

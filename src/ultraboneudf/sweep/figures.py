@@ -146,15 +146,60 @@ def render_points(points: np.ndarray, values: np.ndarray | None = None, width: i
     return out
 
 
-def save_png(image: Image.Image, path: str | os.PathLike, max_colours: int | None = None) -> None:
-    """Write a picture atomically: PNG (``max_colours``: adaptive palette, to keep it small), or
-    JPEG (quality 85) when ``path`` ends in ``.jpg``/``.jpeg`` (for sheets of ultrasound frames,
-    whose speckle PNG compresses badly)."""
+def mesh_section_pixels(mesh, pixel_to_world: np.ndarray) -> np.ndarray:
+    """The mesh's cut by one frame's image plane, as ``(K, 2, 2)`` segments in that frame's pixel
+    coordinates ``(column, row)`` (empty when the plane misses the mesh)."""
+    from trimesh.intersections import mesh_plane
+
+    normal = pixel_to_world[:3, 2] / np.linalg.norm(pixel_to_world[:3, 2])
+    segs = mesh_plane(mesh, normal, pixel_to_world[:3, 3])
+    if len(segs) == 0:
+        return np.zeros((0, 2, 2))
+    w2p = np.linalg.inv(pixel_to_world)
+    pix = segs.reshape(-1, 3) @ w2p[:3, :3].T + w2p[:3, 3]
+    return pix[:, :2].reshape(-1, 2, 2)
+
+
+def frames_with_mesh(sweep, masks: np.ndarray, mesh, frames: Sequence[int], columns: int = 3,
+                     tile_width: int = 360, crop: tuple[int, int, int, int] | None = None) -> Image.Image:
+    """Contact sheet of frames with the detected bone (red: the pixels that became points) and the
+    reconstructed mesh cut by each frame's plane (green), so a reader sees whether the surface
+    follows the echo. ``crop`` = ``(column, row, width, height)`` of the frames to show."""
+    p2w = sweep.pixel_to_world()
+    tiles = []
+    for i in frames:
+        im = overlay(sweep.images[i], masks[i], dilate=max(1, sweep.height // 250))
+        d = ImageDraw.Draw(im)
+        width = max(2, sweep.width // 300)
+        for (a, b) in mesh_section_pixels(mesh, p2w[i]):
+            d.line([tuple(a), tuple(b)], fill=(60, 230, 90), width=width)
+        if crop is not None:
+            im = im.crop((crop[0], crop[1], crop[0] + crop[2], crop[1] + crop[3]))
+        tiles.append(im)
+    return contact_sheet(tiles, [sweep.frame_names[i] for i in frames], columns=columns, tile_width=tile_width)
+
+
+MARKER_COLOURS = [(255, 40, 40), (60, 230, 90), (255, 255, 0), (255, 255, 255)]
+"""Overlay colours kept exact by :func:`save_png`'s ``greys`` palette (red, green, yellow, white)."""
+
+
+def save_png(image: Image.Image, path: str | os.PathLike, max_colours: int | None = None,
+             greys: int | None = None) -> None:
+    """Write a picture atomically: PNG (``max_colours``: adaptive palette; ``greys``: that many grey
+    levels plus the exact :data:`MARKER_COLOURS`, for overlays on ultrasound frames, which stay
+    small and keep their thin coloured lines), or JPEG (quality 85) when ``path`` ends in
+    ``.jpg``/``.jpeg``."""
     buf = io.BytesIO()
     if str(path).lower().endswith((".jpg", ".jpeg")):
         image.convert("RGB").save(buf, format="JPEG", quality=85, optimize=True)
     else:
-        if max_colours:
+        if greys:
+            levels = np.linspace(0, 255, greys).round().astype(int)
+            pal = [c for g in levels for c in (g, g, g)] + [c for rgb in MARKER_COLOURS for c in rgb]
+            pal_img = Image.new("P", (1, 1))
+            pal_img.putpalette(pal + [0] * (768 - len(pal)))
+            image = image.convert("RGB").quantize(palette=pal_img, dither=Image.Dither.NONE)
+        elif max_colours:
             image = image.convert("RGB").convert("P", palette=Image.Palette.ADAPTIVE, colors=max_colours)
         image.save(buf, format="PNG", optimize=True)
     atomic_write_bytes(path, buf.getvalue())

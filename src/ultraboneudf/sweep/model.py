@@ -7,9 +7,11 @@ Geometry of one frame ``i`` (all lengths in millimetres)::
 where ``c`` is the pixel column (0 at the left, the lateral direction), ``r`` the pixel row (0 at
 the top, where the probe touches the skin; the beams run down the columns), and
 ``P = diag(sx, sy, 1, 1) · translate(o, o, 0)`` places the pixel centre ``(c, r)`` at image-plane
-millimetres ``((c + o)·sx, (r + o)·sy, 0)``. ``image_to_world[i]`` is rigid (rotation + translation,
-mm → mm). The UltraBones100k layout puts pixel centres at ``o = 0.5``; PLUS/ITK/Slicer put the
-centre of the first pixel at the origin, ``o = 0``. :meth:`Sweep.pixel_to_world` gives the whole
+millimetres ``((c + o)·sx, (r + o)·sy, 0)`` (a calibration with slightly non-perpendicular image
+axes adds a shear, see :func:`~ultraboneudf.sweep.transforms.pixel_to_image_matrix`).
+``image_to_world[i]`` is rigid (rotation + translation, mm → mm). The UltraBones100k layout puts
+pixel centres at ``o = 0.5``; PLUS/ITK/Slicer put the centre of the first pixel at the origin,
+``o = 0``. :meth:`Sweep.pixel_to_world` gives the whole
 product, which is what every reader and writer round-trips exactly.
 
 The world frame is whatever frame the input's transforms map to (the CT frame for the
@@ -49,6 +51,8 @@ class Sweep:
         orientation: PLUS ultrasound image orientation of the frames as held (``MF`` canonical).
         source: the path the sweep was read from (for messages).
         meta: free-form extras (calibration, transform name, NRRD space, …).
+        shear_deg: ``(F,)`` float64, angle (degrees) by which each frame's image axes deviate from
+            perpendicular (0 unless a real calibration is a little sheared).
     """
 
     image_to_world: np.ndarray
@@ -62,6 +66,7 @@ class Sweep:
     orientation: str = "MF"
     source: str = ""
     meta: dict[str, Any] = field(default_factory=dict)
+    shear_deg: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.image_to_world = np.asarray(self.image_to_world, dtype=np.float64).reshape(-1, 4, 4)
@@ -74,6 +79,8 @@ class Sweep:
         if sp.shape != (n, 2):
             raise ValueError(f"spacing_mm must be (2,) or ({n}, 2), got {sp.shape}")
         self.spacing_mm = sp
+        shear = np.zeros(n) if self.shear_deg is None else np.asarray(self.shear_deg, np.float64)
+        self.shear_deg = np.broadcast_to(shear, (n,)).copy()
         self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
         w, h = self.image_size
         for name in ("images", "masks"):
@@ -114,17 +121,21 @@ class Sweep:
         """``(F, 4, 4)`` affine maps from pixel indices ``[c, r, 0, 1]`` to world mm."""
         out = np.empty_like(self.image_to_world)
         for i in range(self.n_frames):
-            out[i] = self.image_to_world[i] @ pixel_to_image_matrix(self.spacing_mm[i], self.pixel_offset)
+            out[i] = self.image_to_world[i] @ pixel_to_image_matrix(self.spacing_mm[i], self.pixel_offset,
+                                                                    self.shear_deg[i])
         return out
 
     def probe_axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per-frame world unit vectors ``(lateral, beam, normal)``, each ``(F, 3)``.
 
         ``lateral`` runs along the image columns (increasing ``c``), ``beam`` down the scan lines
-        (increasing ``r``, away from the transducer), ``normal = lateral × beam``.
+        (increasing ``r``, away from the transducer; off ``lateral``'s perpendicular by the
+        shear), ``normal`` is the image plane's unit normal.
         """
-        rot = self.image_to_world[:, :3, :3]
-        return rot[:, :, 0].copy(), rot[:, :, 1].copy(), rot[:, :, 2].copy()
+        m = self.pixel_to_world()[:, :3, :3]
+        lateral = m[:, :, 0] / np.linalg.norm(m[:, :, 0], axis=1, keepdims=True)
+        beam = m[:, :, 1] / np.linalg.norm(m[:, :, 1], axis=1, keepdims=True)
+        return lateral, beam, self.image_to_world[:, :3, 2].copy()
 
     def replace(self, **changes: Any) -> "Sweep":
         """A copy with some attributes replaced (arrays are shared, not copied)."""
@@ -140,6 +151,7 @@ class Sweep:
         return self.replace(
             image_to_world=self.image_to_world[idx],
             spacing_mm=self.spacing_mm[idx],
+            shear_deg=self.shear_deg[idx],
             images=None if self.images is None else self.images[idx],
             masks=None if self.masks is None else self.masks[idx],
             timestamps=self.timestamps[idx],

@@ -4,7 +4,7 @@
 | --- | --- | --- |
 | ``ultrabones`` | folder: ``poses.csv``, ``calibration.json``, ``frames/*.png`` (+ ``masks/``) | :mod:`.ultrabones` |
 | ``metaio`` | PLUS sequence metafile ``.mha`` / ``.mhd`` (+ ``.raw``/``.zraw``) | :mod:`.metaio` |
-| ``nrrd`` | 3D Slicer ``.seq.nrrd`` image sequence | :mod:`.nrrd_seq` |
+| ``nrrd`` | 3D Slicer ``.seq.nrrd`` image sequence, PLUS ``.igs.nrrd`` | :mod:`.nrrd_seq` |
 
 Masks for any layout can be given separately (``masks=``: a folder of PNGs, ``.npy`` or ``.npz``),
 matched to the frames by file stem or by order.
@@ -38,7 +38,7 @@ LAYOUTS: dict[str, Layout] = {
     "metaio": Layout("metaio", metaio.detect, metaio.read, metaio.write,
                      "PLUS sequence metafile (.mha / .mhd)"),
     "nrrd": Layout("nrrd", nrrd_seq.detect, nrrd_seq.read, nrrd_seq.write,
-                   "3D Slicer image sequence (.seq.nrrd)"),
+                   "3D Slicer image sequence (.seq.nrrd) or PLUS .igs.nrrd"),
 }
 
 
@@ -66,8 +66,10 @@ def read_sweep(path: str | os.PathLike, layout: str | None = None, **options: An
     Args:
         path: a sweep folder or a sequence file.
         layout: force a layout (key of :data:`LAYOUTS`); detected from the path by default.
-        **options: passed to the layout's reader (e.g. ``masks=`` for a separate mask stack,
-            ``transform=`` for MetaIO/NRRD, ``mask_dir=`` for the UltraBones100k layout).
+        **options: passed to the layout's reader (e.g. ``masks=`` for a separate mask stack;
+            ``calibration=``, ``transform=``, ``reference=``, ``image_frame=`` for the pose chain of
+            MetaIO/NRRD, ``transforms=`` for a NRRD's transform sequences; ``mask_dir=`` for the
+            UltraBones100k layout).
 
     Raises:
         InputError: naming the path, when it does not exist, its layout is unknown, or the reader

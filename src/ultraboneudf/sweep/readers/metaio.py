@@ -6,9 +6,12 @@ optionally ``…TransformStatus`` (``OK``/``INVALID``; INVALID frames are skippe
 means OK), ``…Timestamp``, ``…FrameNumber``, ``…ImageStatus``.
 
 Geometry follows PLUS: the image frame is in *pixels* with the centre of the first pixel at the
-origin (``pixel_offset = 0``); ``ImageToReference`` (= ``ImageToProbe`` calibration × tracking)
-carries the mm-per-pixel scaling; ``ElementSpacing`` is not used for geometry. Frames stored in an
-orientation other than ``MF`` are flipped to ``MF`` on reading (PLUS calibrations are for ``MF``).
+origin (``pixel_offset = 0``); the pose chain to the reference (``ImageToReference`` directly, or
+``ReferenceToTracker⁻¹ · ProbeToTracker · ImageToProbe`` with the calibration from the PLUS
+configuration, see :mod:`ultraboneudf.sweep.chain`) carries the mm-per-pixel scaling;
+``ElementSpacing`` is not used for geometry. Frames stored in an orientation other than ``MF`` are
+flipped to ``MF`` on reading (PLUS calibrations are for ``MF``; see
+:mod:`ultraboneudf.sweep.readers.plus_common`).
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ import numpy as np
 from ...errors import InputError
 from ...io import atomic_write_bytes
 from ..model import Sweep, SweepWarning
-from ..transforms import format_matrix, parse_matrix, split_scaled_transform
+from ..transforms import format_matrix
 
 SUFFIXES = (".mha", ".mhd")
 MET_TYPES = {
@@ -33,7 +36,6 @@ MET_TYPES = {
     "MET_LONG_LONG": np.int64, "MET_FLOAT": np.float32, "MET_DOUBLE": np.float64,
 }
 _FRAME_KEY = re.compile(r"^Seq_Frame(\d+)_(.+)$")
-_TRANSFORM = re.compile(r"^(.+)Transform$")
 MAX_HEADER_BYTES = 64 << 20
 
 
@@ -129,110 +131,40 @@ def frame_fields(fields: dict[str, str]) -> dict[int, dict[str, str]]:
     return out
 
 
-def choose_transform(names: set[str], path: Path, wanted: str | None) -> str:
-    """Pick the per-frame image transform: ``wanted``, else ``ImageToReference``, else the only
-    ``ImageTo*``; errors list what the file holds."""
-    if wanted:
-        wanted = wanted[:-len("Transform")] if wanted.endswith("Transform") else wanted
-        if wanted not in names:
-            raise InputError(f"{path}: no per-frame {wanted}Transform (found: "
-                             f"{', '.join(sorted(names)) or 'none'})")
-        return wanted
-    if "ImageToReference" in names:
-        return "ImageToReference"
-    image_to = sorted(n for n in names if n.startswith("ImageTo"))
-    if len(image_to) == 1:
-        return image_to[0]
-    if image_to:
-        warnings.warn(f"{path}: several image transforms ({', '.join(image_to)}); using {image_to[0]}",
-                      SweepWarning, stacklevel=3)
-        return image_to[0]
-    raise InputError(f"{path}: no per-frame ImageTo…Transform, so the frames have no pose in mm "
-                     f"(found: {', '.join(sorted(names)) or 'no transforms'}); pass transform= and "
-                     f"image_to_probe= for a ProbeTo… transform plus a calibration")
-
-
-def read_frame_transforms(path: Path, fields: dict[str, str], n_frames: int,
-                          transform: str | None = None,
-                          image_to_probe: np.ndarray | None = None
-                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str], str]:
-    """Per-frame pixel → world matrices from ``Seq_Frame…`` fields.
-
-    Returns ``(matrices (K,4,4), kept frame indices (K,), timestamps (K,), names, transform)``;
-    frames with ``TransformStatus = INVALID`` are dropped (with a warning). Raises
-    :class:`InputError` when the number of transforms differs from ``n_frames``.
-    """
-    per_frame = frame_fields(fields)
-    names = {m.group(1) for f in per_frame.values() for k in f
-             if (m := _TRANSFORM.match(k)) is not None}
-    if image_to_probe is not None and transform is None:
-        probe = sorted(n for n in names if n.startswith("ProbeTo"))
-        if not probe:
-            raise InputError(f"{path}: no per-frame ProbeTo…Transform to combine with the calibration")
-        transform = probe[0]
-    name = choose_transform(names, path, transform)
-    key = f"{name}Transform"
-    have = sorted(i for i, f in per_frame.items() if key in f)
-    if len(have) != n_frames or (have and (have[0] != 0 or have[-1] != n_frames - 1)):
-        absent = sorted(set(range(n_frames)) - set(have))
-        extra = sorted(set(have) - set(range(n_frames)))
-        detail = (f"no transform for frame {absent[0]}" if absent
-                  else f"transforms for frames beyond the last image (frame {extra[0]})")
-        raise InputError(f"{path}: {n_frames} frames (DimSize) but {len(have)} {key} fields ({detail})")
-    mats, kept, stamps, labels = [], [], [], []
-    invalid = []
-    for i in range(n_frames):
-        f = per_frame[i]
-        if f.get(f"{key}Status", "OK").strip().upper() not in ("OK", "VALID"):
-            invalid.append(i)
-            continue
-        m = parse_matrix(f[key], f"{path}: Seq_Frame{i:04d}_{key}")
-        if image_to_probe is not None:
-            m = m @ image_to_probe
-        mats.append(m)
-        kept.append(i)
+def frame_timestamps(per_frame: dict[int, dict[str, str]], n: int) -> np.ndarray:
+    """``Seq_FrameNNNN_Timestamp`` of every frame (the index where missing or malformed)."""
+    out = np.arange(n, dtype=np.float64)
+    for i in range(n):
         try:
-            stamps.append(float(f.get("Timestamp", i)))
+            out[i] = float(per_frame.get(i, {}).get("Timestamp", i))
         except ValueError:
-            stamps.append(float(i))
-        labels.append(f"Seq_Frame{i:04d}")
-    if invalid:
-        warnings.warn(f"{path}: skipped {len(invalid)} frame(s) with {key}Status INVALID "
-                      f"(first: frame {invalid[0]})", SweepWarning, stacklevel=3)
-    if not mats:
-        raise InputError(f"{path}: every frame's {key} is INVALID")
-    return np.stack(mats), np.asarray(kept), np.asarray(stamps), labels, name
-
-
-def _orient_to_mf(frames: np.ndarray, orientation: str, path: Path) -> np.ndarray:
-    o = orientation.strip().upper()
-    if o in ("", "MF"):
-        return frames
-    if o not in ("UF", "MN", "UN"):
-        warnings.warn(f"{path}: UltrasoundImageOrientation {orientation!r} not understood; frames "
-                      f"used as stored", SweepWarning, stacklevel=3)
-        return frames
-    if o[0] == "U":
-        frames = frames[:, :, ::-1]
-    if o[1] == "N":
-        frames = frames[:, ::-1, :]
-    return np.ascontiguousarray(frames)
+            pass
+    return out
 
 
 def read(path: str | os.PathLike, masks: str | os.PathLike | None = None,
          transform: str | None = None, image_to_probe: np.ndarray | None = None,
-         as_masks: bool = False) -> Sweep:
+         as_masks: bool = False, calibration=None, reference: str | None = None,
+         image_frame: str | None = None) -> Sweep:
     """Read a PLUS sequence metafile into a :class:`Sweep`.
 
     Args:
-        path: ``.mha`` / ``.mhd`` (``.seq.mha`` etc.).
+        path: ``.mha`` / ``.mhd`` (``.igs.mha``, ``.seq.mha``, …).
         masks: optional mask stack for the same frames (folder of PNGs, ``.npy``, ``.npz``).
-        transform: per-frame transform name (``ImageToReference`` by default).
-        image_to_probe: 4×4 calibration (pixels → probe, with scaling) when ``transform`` is a
-            ``ProbeTo…`` transform.
+        transform: a per-frame transform the pose chain must use (``ImageToReference``,
+            ``ProbeToTracker``, …); by default the chain is resolved from what the file and the
+            calibration hold (see :mod:`ultraboneudf.sweep.chain`).
+        image_to_probe: 4×4 calibration (pixels → probe, with the scaling), as ``Image →`` the
+            ``From`` frame of ``transform`` (``Probe`` by default).
         as_masks: the pixel data are bone masks (non-zero = bone), not B-mode frames.
+        calibration: a PLUS device-set ``.xml``, a 4×4 matrix file, or a
+            :class:`~ultraboneudf.sweep.calibration.Calibration`.
+        reference: the output frame (default ``Reference``, else ``Tracker``).
+        image_frame: the frame of the stored pixels (default ``Image``, or the crop frame).
     """
+    from ..chain import FrameTransforms, resolve_chain
     from .images import load_mask_stack
+    from .plus_common import calibration_for, sweep_from_chain
 
     path = Path(path)
     if not path.is_file():
@@ -249,32 +181,22 @@ def read(path: str | os.PathLike, masks: str | os.PathLike | None = None,
                          f"DimSize {fields.get('DimSize')!r}")
     w, h = dims[0], dims[1]
     n = dims[2] if ndims == 3 else 1
+    per_frame = frame_fields(fields)
     if w == 0 or h == 0 or n == 0:
-        raise InputError(f"{path}: the sequence holds no image data (DimSize {fields.get('DimSize')})")
-    mats, kept, stamps, labels, name = read_frame_transforms(path, fields, n, transform, image_to_probe)
+        hint = (": a transform sequence (as 3D Slicer saves one); give it as the transforms of an "
+                "image sequence (--transforms)" if per_frame else "")
+        raise InputError(f"{path}: the sequence holds no image data (DimSize {fields.get('DimSize')}){hint}")
+    cal = calibration_for(path, calibration, image_to_probe, transform)
+    chain = resolve_chain(FrameTransforms(per_frame, n, path), cal, transform, reference, image_frame)
     pixels = _read_pixels(path, fields, data_offset, (n, h, w), channels)
-    orientation = fields.get("UltrasoundImageOrientation")
-    if orientation is None:
-        warnings.warn(f"{path}: no UltrasoundImageOrientation; assuming MF", SweepWarning, stacklevel=2)
-        orientation = "MF"
-    pixels = _orient_to_mf(pixels, orientation, path)[kept]
-    rigid, spacing = [], []
-    for m, label in zip(mats, labels):
-        r, s = split_scaled_transform(m, f"{path}: {label}_{name}Transform")
-        rigid.append(r)
-        spacing.append(s)
-    spacing_arr = np.asarray(spacing)
-    if np.allclose(spacing_arr, 1.0, atol=1e-9) and "ElementSpacing" in fields:
+    sweep = sweep_from_chain(path, pixels, chain, fields.get("UltrasoundImageOrientation"), cal,
+                             as_masks, "metaio", frame_timestamps(per_frame, n))
+    if np.allclose(sweep.spacing_mm, 1.0, atol=1e-9) and "ElementSpacing" in fields:
         es = fields["ElementSpacing"].split()[:2]
         if es and any(abs(float(v) - 1.0) > 1e-9 for v in es if _is_float(v)):
-            warnings.warn(f"{path}: the {name} transforms carry no scaling (1 mm/px); ElementSpacing "
-                          f"{' '.join(es)} is ignored, as PLUS does", SweepWarning, stacklevel=2)
-    images, mask_arr = (None, pixels != 0) if as_masks else (pixels, None)
-    sweep = Sweep(image_to_world=np.stack(rigid), spacing_mm=spacing_arr, image_size=(w, h),
-                  images=images, masks=mask_arr, timestamps=stamps, frame_names=labels,
-                  pixel_offset=0.0, orientation="MF", source=str(path),
-                  meta={"layout": "metaio", "transform": name, "file_orientation": orientation,
-                        "frame_numbers": kept.tolist()})
+            warnings.warn(f"{path}: the {chain.formula()} transforms carry no scaling (1 mm/px); "
+                          f"ElementSpacing {' '.join(es)} is ignored, as PLUS does", SweepWarning,
+                          stacklevel=2)
     if masks is not None:
         sweep = sweep.with_masks(load_mask_stack(masks, sweep.n_frames, sweep.image_size))
     return sweep

@@ -245,6 +245,9 @@ def write(sweep: Sweep, folder: str | os.PathLike, calibration: np.ndarray | Non
     constant = bool(np.all(sp == sp[0]))
     if not isotropic and not constant:
         raise ValueError("the UltraBones100k layout needs square pixels or one spacing for all frames")
+    if np.any(sweep.shear_deg != 0):
+        raise ValueError("the UltraBones100k layout has no shear: write a sheared calibration's sweep "
+                         "as .mha or .seq.nrrd")
     # pixel centres at +0.5 in this layout: fold the sweep's own offset into the transform
     lines = ["timestamp,space_factor,x,y,z,euler_x,euler_y,euler_z" if isotropic
              else "timestamp,x,y,z,euler_x,euler_y,euler_z"]

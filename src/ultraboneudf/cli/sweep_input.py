@@ -1,0 +1,194 @@
+"""The sweep options shared by ``reconstruct`` and ``sweep2points``, and the one flow both use:
+read the sweep through its pose chain, segment the bone, compound the points in mm."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..progress import Progress
+
+CHAIN_OPTIONS = ("calibration", "transform", "reference", "image_frame", "transforms")
+
+
+def add_sweep_options(p: argparse.ArgumentParser) -> None:
+    """The options that say how to read a tracked sweep and find its bone."""
+    g = p.add_argument_group("tracked sweeps (PLUS .mha/.mhd/.igs.nrrd, Slicer .seq.nrrd, UltraBones100k folders)")
+    g.add_argument("--calibration", type=Path, default=None, metavar="FILE",
+                   help="probe calibration: a PLUS device-set configuration (.xml; its "
+                        "CoordinateDefinitions, e.g. Image→Probe) or a 4×4 matrix file (16 numbers "
+                        "row-major, or .npy) mapping image pixels to the probe (mm)")
+    g.add_argument("--transform", default=None, metavar="NAME",
+                   help="per-frame transform the pose chain must use, e.g. ImageToReference or "
+                        "ProbeToTracker (default: resolved from the file and the calibration, as PLUS "
+                        "does; the log says which chain)")
+    g.add_argument("--reference", default=None, metavar="NAME",
+                   help="coordinate frame of the output points, e.g. Reference or Tracker (default: "
+                        "Reference when the file tracks one, else Tracker)")
+    g.add_argument("--image-frame", default=None, metavar="NAME",
+                   help="coordinate frame of the stored pixels (default: Image, or the crop frame of "
+                        "a cropped sequence)")
+    g.add_argument("--transforms", type=Path, action="append", default=None, metavar="FILE",
+                   help="transform sequence file(s) for an image sequence without its own transforms "
+                        "(3D Slicer saves each transform sequence as a .seq.mha); repeatable")
+    g.add_argument("--segment", default="auto",
+                   help="auto (the sweep's masks if any, else classical), masks, classical, or the "
+                        "path of a TorchScript (.pt) / ONNX (.onnx) model (default: auto)")
+    g.add_argument("--masks", type=Path, default=None,
+                   help="bone masks for the frames: folder of PNGs (matched by name or order), .npy or "
+                        ".npz (F×H×W)")
+    g.add_argument("--mask-dir", default=None,
+                   help="UltraBones100k layout: sub-folder of masks to use (default: masks)")
+    g.add_argument("--detector", action="append", default=[], metavar="KEY=VALUE",
+                   help="classical detector option (mm), e.g. --detector min_depth_mm=8; repeatable")
+    g.add_argument("--no-consistency", action="store_true",
+                   help="classical detector: keep echoes that no neighbouring frame confirms")
+    g.add_argument("--threshold", type=float, default=0.5,
+                   help="learned model: probability threshold (default 0.5)")
+
+
+def parse_kv(items: list[str], option: str = "--detector") -> dict[str, float]:
+    """``['high=0.4']`` → ``{'high': 0.4}``; errors name the option."""
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise InputError(f"{option} {item!r}: expected KEY=VALUE")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = float(v)
+        except ValueError:
+            raise InputError(f"{option} {item!r}: {v!r} is not a number") from None
+    return out
+
+
+def sweep_options_given(args: argparse.Namespace) -> list[str]:
+    """The sweep options set on the command line (to reject them for a point cloud input)."""
+    given = [name for name in CHAIN_OPTIONS if getattr(args, name, None)]
+    given += [name for name in ("masks", "mask_dir") if getattr(args, name, None) is not None]
+    if getattr(args, "segment", "auto") != "auto":
+        given.append("segment")
+    if getattr(args, "detector", None):
+        given.append("detector")
+    return ["--" + g.replace("_", "-") for g in given]
+
+
+def read_options(args: argparse.Namespace, path: Path) -> dict[str, Any]:
+    """Keyword options for :func:`~ultraboneudf.sweep.read_sweep` from the command line."""
+    from ..sweep import detect_layout
+
+    layout = detect_layout(path) if path.exists() else None
+    opts: dict[str, Any] = {}
+    chain = {name: getattr(args, name) for name in CHAIN_OPTIONS if getattr(args, name, None)}
+    if layout == "ultrabones":
+        if chain:
+            raise InputError(f"{path}: {', '.join('--' + k.replace('_', '-') for k in chain)} "
+                             f"{'apply' if len(chain) > 1 else 'applies'} to PLUS/Slicer sequence "
+                             f"files; an UltraBones100k folder carries its calibration in "
+                             f"calibration.json")
+        if args.mask_dir is not None:
+            opts["mask_dir"] = args.mask_dir
+        return opts
+    if args.mask_dir is not None:
+        raise InputError(f"{path}: --mask-dir applies to UltraBones100k folders; give --masks")
+    if "transforms" in chain:
+        if layout != "nrrd":
+            raise InputError(f"{path}: --transforms applies to NRRD image sequences (.seq.nrrd); this "
+                             f"file holds its own transforms")
+        opts["transforms"] = chain.pop("transforms")
+    opts.update(chain)
+    return opts
+
+
+@dataclass
+class SweepPoints:
+    """What :func:`sweep_points` made: the points and how."""
+
+    points: Any                    # CompoundedPoints
+    sweep: Any                     # the Sweep as segmented
+    masks: np.ndarray
+    method: str
+    info: dict = field(default_factory=dict)
+
+
+def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, top_only: bool = True,
+                 remove_outliers: bool = True, outlier_k: int = 16, outlier_std: float = 2.0,
+                 frame_step: int = 1) -> SweepPoints:
+    """Read a sweep with the command line's options, segment its bone and compound the points.
+
+    Raises :class:`InputError` (one line, naming the file) for a sweep without 3-D extent, for no
+    bone found, and for anything its reader rejects.
+    """
+    from ..sweep import read_sweep, segment_sweep, sweep_to_points
+    from ..sweep.bone import classical_bone_masks
+    from ..sweep.chain import frames_coplanar
+    from ..sweep.readers.images import load_mask_stack
+
+    with progress.stage("read sweep", None):
+        sweep = read_sweep(path, **read_options(args, path))
+    chain = sweep.meta.get("chain")
+    if chain:
+        progress.log(f"{path.name}: pose chain {chain['pixel_frame']}→{chain['reference_frame']} = "
+                     f"{chain['chain']}"
+                     + (f" (calibration {Path(chain['calibration']).name})" if chain.get("calibration") else "")
+                     + f"; {chain['frames_used']}/{chain['frames']} frames valid; points in the "
+                     f"{chain['reference_frame']} frame")
+        for note in sweep.meta.get("chain_notes", []):
+            progress.log(f"{path.name}: {note}")
+    if sweep.n_frames < 2 or frames_coplanar(sweep.pixel_to_world(), sweep.image_size)[0]:
+        how = f" (chain {chain['chain']})" if chain else ""
+        what = "has a single frame" if sweep.n_frames < 2 else "has every frame in one plane"
+        raise InputError(f"{path}: the sweep {what}{how}, so it has no 3-D extent; check the "
+                         f"tracking transforms and --transform/--reference")
+    if args.masks is not None:
+        sweep = sweep.with_masks(load_mask_stack(args.masks, sweep.n_frames, sweep.image_size,
+                                                 [Path(n).stem for n in sweep.frame_names]))
+    if frame_step > 1:
+        sweep = sweep.subset(np.arange(0, sweep.n_frames, frame_step))
+    segment = args.segment
+    if segment == "auto":
+        segment = "masks" if sweep.masks is not None else "classical"
+    info: dict[str, Any] = {"layout": sweep.meta.get("layout"), "frames": sweep.n_frames,
+                            "pixel_spacing_mm": np.round(np.median(sweep.spacing_mm, axis=0), 6).tolist(),
+                            "shear_deg": round(float(np.median(sweep.shear_deg)), 4) + 0.0}
+    if chain:
+        info["pose_chain"] = chain
+        info["image_orientation"] = sweep.meta.get("file_orientation")
+    detector = parse_kv(args.detector)
+    if segment == "classical":
+        masks, report = classical_bone_masks(sweep, detector, consistency=not args.no_consistency,
+                                             progress=progress)
+        method = "classical"
+        info["segmentation"] = {"method": method, **report.as_dict()}
+        progress.log(f"{path.name}: classical segmentation: {report.summary()}")
+    else:
+        if detector:
+            raise InputError(f"--detector applies to the classical detector, not --segment {segment}")
+        masks, method = segment_sweep(sweep, segment, None, {"threshold": args.threshold}, progress)
+        info["segmentation"] = {"method": method}
+    if not masks.any():
+        why = ""
+        if segment == "classical":
+            rep = info["segmentation"]
+            if rep["no_tissue_frames"] == sweep.n_frames:
+                why = "; no frame images soft tissue (water or gel only)"
+            elif rep["no_tissue_frames"] or rep["low_confidence_frames"]:
+                why = (f"; {rep['no_tissue_frames']} frame(s) image no soft tissue, "
+                       f"{rep['low_confidence_frames']} have only weak echoes")
+        raise InputError(f"{path}: no bone found in any of the {sweep.n_frames} frames "
+                         f"(segmentation: {method}{why})")
+    cp = sweep_to_points(sweep.with_masks(masks), segment="masks", top_only=top_only,
+                         remove_outliers=remove_outliers, outlier_k=outlier_k,
+                         outlier_std=outlier_std, progress=progress)
+    if frame_step > 1:
+        cp.frame_index = cp.frame_index * frame_step
+    d = cp.depth_mm
+    info["points"] = {"count": len(cp), "frames_with_bone": int(len(np.unique(cp.frame_index))),
+                      "depth_mm_median": round(float(np.median(d)), 3),
+                      "depth_mm_p10_p90": [round(float(np.percentile(d, 10)), 3),
+                                           round(float(np.percentile(d, 90)), 3)]}
+    return SweepPoints(cp, sweep, masks, method, info)
