@@ -28,7 +28,7 @@ def test_demo_writes_everything(tmp_path, capsys):
                  "demo_mesh.png"):
         assert (out / name).stat().st_size > 0, name
     side = json.loads((out / "demo_mesh.json").read_text())
-    assert side["preset"] == "fast" and side["config"]["extract"]["mode"] == "clean"
+    assert side["preset"] == "robust" and side["config"]["extract"]["mode"] == "clean"
     ev = json.loads((out / "demo_eval.json").read_text())
     assert ev["failed"] is False and 0 < ev["cd_mm"] < 5.0
     assert Image.open(out / "demo_mesh.png").size[0] > 400

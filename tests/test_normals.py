@@ -96,23 +96,23 @@ def test_reconstruct_hands_normalised_voxel_probe_positions_to_the_method(monkey
 
     p, _, probe, _ = two_band_sweep()
     monkeypatch.setattr(pipeline, "get_method", lambda name: Method(with_probe, takes_probe=True))
-    rec = ultraboneudf.reconstruct(p, device="cpu", probe_positions=probe, **{"data.voxel_size_mm": 2.0})
+    rec = ultraboneudf.reconstruct(p, preset="fast", device="cpu", probe_positions=probe, **{"data.voxel_size_mm": 2.0})
     v, a = voxel_downsample_with(p, probe, 2.0)
     assert len(v) < len(p)
     np.testing.assert_allclose(seen["points"], rec.normalizer.forward(v))
     np.testing.assert_allclose(seen["probe"], rec.normalizer.forward(a))
     assert rec.mesh is None and rec.sidecar()["method_info"] == {"poisson_orientation": "probe"}
-    ultraboneudf.reconstruct(p, device="cpu")
+    ultraboneudf.reconstruct(p, preset="fast", device="cpu")
     assert seen["probe"] is None
     with pytest.raises(InputError, match="one row per point"):
-        ultraboneudf.reconstruct(p, device="cpu", probe_positions=probe[:-1])
+        ultraboneudf.reconstruct(p, preset="fast", device="cpu", probe_positions=probe[:-1])
     bad = probe.copy()
     bad[3, 1] = np.nan
     with pytest.raises(InputError, match="NaN"):
-        ultraboneudf.reconstruct(p, device="cpu", probe_positions=bad)
+        ultraboneudf.reconstruct(p, preset="fast", device="cpu", probe_positions=bad)
     # a method that has no use for probe positions never receives them
     monkeypatch.setattr(pipeline, "get_method", lambda name: Method(without_probe))
-    ultraboneudf.reconstruct(p, device="cpu", probe_positions=probe)
+    ultraboneudf.reconstruct(p, preset="fast", device="cpu", probe_positions=probe)
     assert seen["probe"] == "never passed"
 
 
@@ -165,7 +165,9 @@ def test_cli_reconstruct_sweep_orients_toward_the_probe(stub_solver, tmp_path):
     sweep = Sweep(image_to_world=poses, spacing_mm=0.5, image_size=(40, 20), masks=masks, pixel_offset=0.5)
     write_sweep(sweep, tmp_path / "sw", write_images=False)
     out = tmp_path / "mesh.ply"
-    assert main(["reconstruct", str(tmp_path / "sw"), "-o", str(out), "--method", "poisson", "--quiet"]) == 0
+    # the stub solver's mesh (a unit icosahedron) is nowhere near the data: no support trim
+    assert main(["reconstruct", str(tmp_path / "sw"), "-o", str(out), "--method", "poisson", "--quiet",
+                 "--set", "extract.trim_mm=0"]) == 0
     side = json.loads(out.with_suffix(".json").read_text())
     assert side["method_info"]["poisson_orientation"] == "probe"
     _, normals = stub_solver[-1]

@@ -2,7 +2,7 @@
 
 >>> import ultraboneudf
 >>> points = ultraboneudf.load_points("scan.xyz")                  # (N, 3) mm
->>> rec = ultraboneudf.reconstruct(points, preset="fast")        # doctest: +SKIP
+>>> rec = ultraboneudf.reconstruct(points)                        # doctest: +SKIP
 >>> rec.save("bone.ply")                                         # mesh + bone.json sidecar
 """
 

@@ -19,7 +19,7 @@ import torch
 import trimesh
 
 from ._version import __version__
-from .config import Config, ExtractConfig, apply_overrides, preset as make_preset
+from .config import DEFAULT_PRESET, Config, ExtractConfig, apply_overrides, preset as make_preset
 from .errors import InputError
 from .extraction import data_fit, extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
@@ -109,9 +109,16 @@ class Reconstruction:
                        "from the mesh (the field did not fit there, the mesh stops short of the data's "
                        "rim, or the points are outliers); try another --seed or --preset")
         if fit["mesh_far_area_fraction"] > limit:
-            out.append(f"{100 * fit['mesh_far_area_fraction']:.1f}% of the mesh area is {t:g} mm or more "
-                       "from every input point: surface the data does not support; "
-                       f"--set extract.trim_mm={t:g} removes it")
+            text = (f"{100 * fit['mesh_far_area_fraction']:.1f}% of the mesh area is {t:g} mm or more "
+                    "from every input point: ")
+            if self.config.extract.trim_mm <= 0:
+                text += f"surface the data does not support; --set extract.trim_mm={t:g} removes it"
+            elif self.config.data.bridge > 0:
+                text += ("surface interpolated across gaps in the data (data.bridge; "
+                         "--set data.bridge=0 leaves the gaps open)")
+            else:
+                text += "surface the data does not support"
+            out.append(text)
         return out
 
     def save(self, path: str | Path) -> Path:
@@ -142,7 +149,7 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.device = "auto",
+def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torch.device = "auto",
                 seed: int = 42, method: str = "ultraboneudf", *, config: Config | None = None,
                 assignments: list[str] | tuple[str, ...] = (), progress: Progress | None = None,
                 quiet: bool = True, source: str = "points", probe_positions: Any = None,
@@ -152,7 +159,9 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
     Parameters
     ----------
     points_mm : (N, 3) array-like, millimetres in the input's frame.
-    preset : ``official`` (the reference code), ``paper`` (the paper's text) or ``fast``.
+    preset : ``robust`` (the default: ultrasound-like points), ``fast`` (clean, dense clouds),
+        ``official`` (the reference code) or ``paper`` (the paper's text); see
+        :data:`~ultraboneudf.config.PRESET_HELP`.
     device : ``auto``, ``cpu``, ``cuda`` or a torch device.
     seed : seeds every random draw; same input, config, seed and device give the same mesh.
     method : a name from :data:`ultraboneudf.methods.METHODS`; its ``configure`` sets the method's
@@ -184,7 +193,7 @@ def reconstruct(points_mm: Any, preset: str = "official", device: str | torch.de
                    t_start)
 
 
-def reconstruct_many(clouds_mm: Sequence[Any], preset: str = "fast", device: str | torch.device = "auto",
+def reconstruct_many(clouds_mm: Sequence[Any], preset: str = DEFAULT_PRESET, device: str | torch.device = "auto",
                      seed: int = 42, *, assignments: list[str] | tuple[str, ...] = (),
                      progress: Progress | None = None, quiet: bool = True,
                      sources: Sequence[str] | None = None, **overrides: Any) -> list[Reconstruction]:

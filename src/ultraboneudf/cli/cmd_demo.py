@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..config import DEFAULT_PRESET
 from ..io import atomic_write_bytes, save_json, save_mesh, sha256_file
 from ..pipeline import reconstruct
 from ..progress import Progress
@@ -22,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder (default: demo_out)")
     p.add_argument("--samples", type=int, default=500_000,
                    help="area samples per surface for the Chamfer distance (default: 500,000)")
-    add_run_options(p, "fast")
+    add_run_options(p, DEFAULT_PRESET)
     p.set_defaults(func=run)
 
 

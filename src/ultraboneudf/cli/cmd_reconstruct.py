@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import PRESETS
+from ..config import DEFAULT_PRESET, PRESET_HELP, PRESETS
 from ..errors import InputError
 from ..io import check_mesh_path, load_points, sha256_file
 from ..methods import METHODS
@@ -18,8 +18,9 @@ from .sweep_input import add_sweep_options, sweep_options_given, sweep_points
 
 def add_run_options(p: argparse.ArgumentParser, default_preset: str) -> None:
     """Options shared by ``reconstruct`` and ``demo``."""
-    p.add_argument("--preset", default=default_preset, choices=sorted(PRESETS),
-                   help=f"parameter set (default: {default_preset})")
+    p.add_argument("--preset", default=default_preset, choices=list(PRESETS),
+                   help="parameter set: " + "; ".join(f"{k}: {v}" for k, v in PRESET_HELP.items())
+                        + f" (default: {default_preset})")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: auto)")
     p.add_argument("--seed", type=int, default=42, help="random seed (default: 42)")
     p.add_argument("--iters", type=int, default=None, help="training iterations (overrides the preset)")
@@ -39,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("input", type=Path, help="point cloud file or tracked sweep")
     p.add_argument("-o", "--output", type=Path, required=True, help="output mesh (.ply, .obj or .stl)")
     p.add_argument("--method", default="ultraboneudf", choices=sorted(METHODS), help="method (default: ultraboneudf)")
-    add_run_options(p, "official")
+    add_run_options(p, DEFAULT_PRESET)
     add_sweep_options(p)
     p.set_defaults(func=run)
 
