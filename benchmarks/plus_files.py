@@ -57,7 +57,7 @@ def overlay_sheet(sweep_path: Path, cal: Path, out: Path, n: int = 8, crop=None)
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        sweep = read_sweep(sweep_path, calibration=cal)
+        sweep = read_sweep(sweep_path, **({} if cal is None else {"calibration": cal}))
     masks, _ = classical_bone_masks(sweep)
     frames = np.linspace(0, sweep.n_frames - 1, n).round().astype(int)
     tiles = []
@@ -68,7 +68,7 @@ def overlay_sheet(sweep_path: Path, cal: Path, out: Path, n: int = 8, crop=None)
              out, greys=64)
 
 
-def figure(sweep_path: Path, cal: Path, mesh_path: Path, out: Path, crop=None) -> None:
+def figure(sweep_path: Path, cal: Path | None, mesh_path: Path, out: Path, crop=None) -> None:
     import trimesh
     from PIL import Image
 
@@ -79,7 +79,7 @@ def figure(sweep_path: Path, cal: Path, mesh_path: Path, out: Path, crop=None) -
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        sweep = read_sweep(sweep_path, calibration=cal)
+        sweep = read_sweep(sweep_path, **({} if cal is None else {"calibration": cal}))
     masks, _ = classical_bone_masks(sweep)
     points = sweep_to_points(sweep.with_masks(masks), segment="masks").points
     mesh = trimesh.load(mesh_path, process=False)

@@ -19,7 +19,7 @@ import torch
 import trimesh
 
 from ._version import __version__
-from .config import DEFAULT_PRESET, Config, ExtractConfig, apply_overrides, preset as make_preset
+from .config import DEFAULT_PRESET, Config, DataConfig, ExtractConfig, apply_overrides, preset as make_preset
 from .errors import InputError
 from .extraction import data_fit, extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
@@ -279,36 +279,45 @@ def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: in
     t1 = time.perf_counter()
     planes, outliers = None, 0
     if d.surface_fit_mm > 0:
-        for _ in range(max(1, d.denoise)):
-            view = None
-            if voxel_probe is not None:  # sweep points: the planes must face the probe
-                view = voxelised - voxel_probe
-                view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
-            planes = fit_local_planes(voxelised, d.surface_fit_mm, view=view)
-            keep = (~planes.outliers(d.outlier_sigmas, 0.1 * d.surface_fit_mm) if d.outlier_sigmas > 0
-                    else np.ones(len(voxelised), dtype=bool))
-            if not keep.any():
-                raise InputError(f"{source}: no point has enough neighbours within data.surface_fit_mm "
-                                 f"= {d.surface_fit_mm:g} mm to form a surface (is the cloud in mm?)")
-            outliers += int((~keep).sum())
-            if d.denoise:
-                voxelised = planes.projected(voxelised)
-            if view is not None and d.shadow_mm > 0:  # among the points kept so far
-                rows = np.flatnonzero(keep)
-                shadow = rows[shadowed(voxelised[rows], view[rows], d.shadow_mm)]
-                keep[shadow] = False
-                outliers += len(shadow)
-            voxelised, planes = voxelised[keep], planes.subset(keep)
-            voxel_probe = None if voxel_probe is None else voxel_probe[keep]
-    elif d.denoise or d.outlier_sigmas > 0:
-        raise InputError("data.denoise and data.outlier_sigmas need the local planes: set "
-                         "data.surface_fit_mm > 0")
+        voxelised, voxel_probe, planes, outliers = _local_plane_stage(voxelised, voxel_probe, d, source)
+    elif d.denoise or d.outlier_sigmas > 0 or d.shadow_mm > 0:
+        raise InputError("data.denoise, data.outlier_sigmas and data.shadow_mm need the local planes: "
+                         "set data.surface_fit_mm > 0")
     normalizer = Normalizer.fit(voxelised)
     return _UnitCloud(points=normalizer.forward(voxelised),
                       probe=None if voxel_probe is None else normalizer.forward(voxel_probe),
                       planes=None if planes is None else planes.scaled(1.0 / normalizer.scale),
                       normalizer=normalizer, input_points=n_input, outliers=outliers,
                       voxel_s=t1 - t0, surface_fit_s=time.perf_counter() - t1)
+
+
+def _local_plane_stage(points: np.ndarray, probe: np.ndarray | None, d: DataConfig, source: str
+                       ) -> tuple[np.ndarray, np.ndarray | None, LocalPlanes, int]:
+    """Robust local planes of the voxelised ``points`` (N, 3) mm, ``data.denoise`` times (at least
+    once): drop the outliers (``outlier_sigmas``), move the points onto their planes (``denoise``),
+    drop the echoes in the shadow of others along their beam (``shadow_mm``; needs ``probe``).
+    Returns the points, their probe positions, their last planes and the number dropped."""
+    planes, dropped = None, 0
+    for _ in range(max(1, d.denoise)):
+        view = None
+        if probe is not None:  # sweep points: the planes must face the probe
+            view = points - probe
+            view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
+        planes = fit_local_planes(points, d.surface_fit_mm, view=view)
+        keep = (~planes.outliers(d.outlier_sigmas, 0.1 * d.surface_fit_mm) if d.outlier_sigmas > 0
+                else np.ones(len(points), dtype=bool))
+        if not keep.any():
+            raise InputError(f"{source}: no point has enough neighbours within data.surface_fit_mm = "
+                             f"{d.surface_fit_mm:g} mm to form a surface (is the cloud in mm?)")
+        if d.denoise:
+            points = planes.projected(points)
+        if view is not None and d.shadow_mm > 0:  # among the points kept so far
+            rows = np.flatnonzero(keep)
+            keep[rows[shadowed(points[rows], view[rows], d.shadow_mm)]] = False
+        dropped += int((~keep).sum())
+        points, planes = points[keep], planes.subset(keep)
+        probe = None if probe is None else probe[keep]
+    return points, probe, planes, dropped
 
 
 def _finish(fitted: Fitted, unit: _UnitCloud, cfg: Config, dev: torch.device, progress: Progress,
