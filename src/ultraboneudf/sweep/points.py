@@ -20,6 +20,7 @@ from .learned import LearnedSegmenter, is_model_path
 from .model import Sweep
 from .outliers import statistical_outlier_mask
 from .readers import read_sweep
+from .bone import classical_bone_masks
 from .segment import BoneDetector
 
 SEGMENT_CHOICES = ("auto", "masks", "classical")
@@ -31,8 +32,10 @@ def segment_sweep(sweep: Sweep, segment: str = "auto", detector: Mapping[str, An
     """Bone masks ``(F, H, W)`` for a sweep and the name of the method used.
 
     ``segment``: ``auto`` (the sweep's masks if it has them, else the classical detector),
-    ``masks`` (the sweep's masks; error if none), ``classical`` (:class:`BoneDetector` with the
-    ``detector`` options), or the path of a TorchScript/ONNX model file (:class:`LearnedSegmenter`
+    ``masks`` (the sweep's masks; error if none), ``classical``
+    (:func:`~ultraboneudf.sweep.bone.classical_bone_masks`: :class:`BoneDetector` with the
+    ``detector`` options in the sweep's imaged region, then the frame-to-frame consistency
+    filter; as the command line), or the path of a TorchScript/ONNX model file (:class:`LearnedSegmenter`
     with ``model_options``).
     """
     src = sweep.source or "sweep"
@@ -49,9 +52,8 @@ def segment_sweep(sweep: Sweep, segment: str = "auto", detector: Mapping[str, An
     if sweep.images is None:
         raise InputError(f"{src}: the sweep has no B-mode frames to segment")
     if segment == "classical":
-        det = detector if isinstance(detector, BoneDetector) else BoneDetector.from_options(dict(detector or {}))
-        with progress.stage("segment", sweep.n_frames) as advance:
-            return det.segment_stack(sweep.images, sweep.spacing_mm, advance), "classical"
+        masks, _ = classical_bone_masks(sweep, detector, progress=progress)
+        return masks, "classical"
     model = LearnedSegmenter(segment, **dict(model_options or {}))
     with progress.stage("segment", sweep.n_frames) as advance:
         return model.segment_stack(sweep.images, sweep.spacing_mm, advance), f"model:{segment}"
