@@ -180,7 +180,8 @@ def test_metaio_probe_transform_with_calibration(tmp_path):
     path.write_bytes(_mha_text(1, [line], "UltrasoundImageOrientation = MF\n"))
     with pytest.raises(InputError, match="no per-frame ImageTo"):
         read_sweep(path)
-    s = read_sweep(path, image_to_probe=cal)
+    with pytest.warns(SweepWarning, match="Tracker .camera. frame"):   # no ReferenceToTracker here
+        s = read_sweep(path, image_to_probe=cal)
     np.testing.assert_allclose(s.pixel_to_world()[0][:, [0, 1, 3]], (probe @ cal)[:, [0, 1, 3]], atol=1e-12)
 
 
