@@ -114,3 +114,18 @@ def test_data_surface_follows_two_tilted_planes_across_a_gap():
     surface = DataSurface(pts, pl.normal, bridge=4.0 * np.ones(len(pts)))
     on = np.array([[0.0, y, np.sqrt(900 - y * y)] for y in np.linspace(-10, 10, 21)])
     assert surface.distance(on).max() < 0.15
+
+
+def test_denoising_follows_the_curvature_of_a_small_bone():
+    """Points of a sphere of radius 10 mm (a talus-sized curvature) with 0.15 mm noise: moved onto
+    their local quadrics they keep the radius (a plane at the 4 mm radius would shrink it by about
+    (4/2)²/(2·10) = 0.2 mm) and lose most of the noise."""
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(60_000, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    v = v[v[:, 2] > 0.3]
+    pts = v * (10.0 + rng.normal(0.0, 0.15, (len(v), 1)))
+    err = np.linalg.norm(fit_local_planes(pts, 4.0).projected(pts), axis=1) - 10.0
+    inner = v[:, 2] > 0.5
+    assert abs(err[inner].mean()) < 0.03
+    assert np.abs(err[inner]).mean() < 0.3 * np.abs(np.linalg.norm(pts[inner], axis=1) - 10.0).mean()

@@ -380,8 +380,8 @@ def _robust() -> Config:
     between the points across gaps up to the plane's radius, instead of the distance to the nearest
     point, which between slices lies beside the query rather than under it; past the data's rims
     that surface goes on for half the plane radius (2 mm), where an oblique echo faded. The support
-    trim measures to the bridged surface, so bridged gaps stay closed. Leaves are kept ≥ 1 mm, so a
-    small bone is not meshed finer than its data resolve."""
+    trim measures to the bridged surface, so bridged gaps stay closed. Leaves are kept ≥ 0.75 mm, so
+    a small bone is not meshed finer than its data resolve."""
     cfg = _fast()
     cfg.data.surface_fit_mm = 4.0
     cfg.data.denoise = 1
@@ -389,7 +389,7 @@ def _robust() -> Config:
     cfg.data.bridge = 1.0
     cfg.data.rim_reach = 0.5
     cfg.loss.distance_target = "surface"
-    cfg.extract.min_leaf_mm = 1.0
+    cfg.extract.min_leaf_mm = 0.75
     return cfg
 
 

@@ -17,8 +17,9 @@ times it: sparse slices need a wider neighbourhood to see their neighbours.
 From the fit:
 
 * ``normal``: the plane's unit normal (sign arbitrary), ``0`` where no radius gave a plane;
-* ``offset``: the point's signed distance from its plane; ``point − offset·normal`` is the point
-  moved onto the plane (denoised);
+* ``offset``: the point's signed height, along the normal, above the quadric fitted to the same
+  neighbours in the plane's frame (a plane would flatten a curved bone by about (radius/2)²/(2R));
+  ``point − offset·normal`` is the point moved onto the surface (denoised);
 * ``spread``: the local noise, 1.4826 × the median distance of the 32 nearest points (on the
   surface) from their planes (a standard deviation for Gaussian noise, not inflated by a few
   outliers);
@@ -55,7 +56,7 @@ class LocalPlanes:
     """Per-point robust plane fits of ``N`` points (see the module docstring)."""
 
     normal: np.ndarray    # (N, 3) unit normals, zero where there is no plane
-    offset: np.ndarray    # (N,) signed distance of each point from its plane
+    offset: np.ndarray    # (N,) signed height of each point above its local quadric (along normal)
     spread: np.ndarray    # (N,) robust spread (scaled MAD) of the neighbours about the plane
     count: np.ndarray     # (N,) neighbours within the first radius (in its radius / 4 voxel copy)
     radius: np.ndarray    # (N,) radius of the accepted fit, 0 where none
@@ -169,9 +170,35 @@ def _fit_at(pts: np.ndarray, rows: np.ndarray, radius: float, view: np.ndarray |
         good = (c >= _MIN_NEIGHBORS) & (vals[:, 1] >= _SPAN * np.maximum(vals[:, 2], 1e-300))
         if view is not None:
             good &= np.abs(np.einsum("ci,ci->c", nrm, view[sl])) >= _MAX_INCIDENCE_COS
-        normal[sl], offset[sl] = nrm, np.einsum("ci,ci->c", p - centre, nrm)
-        count[sl], ok[sl] = c, good
+        normal[sl], count[sl], ok[sl] = nrm, c, good
+        own = p - centre
+        offset[sl] = np.einsum("ci,ci->c", own, nrm) - _quadric_height(d, weight, vecs, own)
     return normal, offset, count, ok
+
+
+def _quadric_height(d: np.ndarray, weight: np.ndarray, vecs: np.ndarray, own: np.ndarray) -> np.ndarray:
+    """Height (C,) above the plane, at each point ``own`` (C, 3) (relative to the plane's centre),
+    of the quadric ``h(s, t) = a s² + b st + c t² + d s + e t + f`` fitted by weighted least squares
+    to the neighbours ``d`` (C, k, 3) (relative to the centre; weights (C, k)) in the plane's frame
+    ``vecs`` (C, 3, 3) (columns: normal, then the two in-plane axes). A plane flattens a curved bone
+    by about ``(radius/2)²/(2·R)``; the quadric follows the curvature, so moving a point onto it
+    removes noise without that bias."""
+    def design(x: np.ndarray) -> np.ndarray:
+        s = np.einsum("...i,...i->...", x, vecs_t1)
+        t = np.einsum("...i,...i->...", x, vecs_t2)
+        return np.stack([s * s, s * t, t * t, s, t, np.ones_like(s)], axis=-1)
+
+    vecs_t1, vecs_t2 = vecs[:, None, :, 2], vecs[:, None, :, 1]
+    a = design(d)                                                       # (C, k, 6)
+    h = np.einsum("cki,ci->ck", d, vecs[:, :, 0])
+    ata = np.einsum("ck,cki,ckj->cij", weight, a, a)
+    atb = np.einsum("ck,cki,ck->ci", weight, a, h)
+    # a little ridge keeps thin or sparse neighbourhoods plane-like (and empty ones solvable)
+    diag = np.einsum("cii->ci", ata)
+    ridge = np.where(np.arange(6) < 3, 1e-3, 1e-9) * np.maximum(diag.max(axis=1, keepdims=True), 1e-300)
+    coef = np.linalg.solve(ata + ridge[:, :, None] * np.eye(6), atb[..., None])[..., 0]
+    vecs_t1, vecs_t2 = vecs[:, :, 2], vecs[:, :, 1]
+    return np.einsum("ci,ci->c", design(own), coef)
 
 
 def shadowed(points: np.ndarray, view: np.ndarray, margin: float, depth: float = 10.0,
