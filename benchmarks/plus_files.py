@@ -4,7 +4,7 @@ pictures of docs/sweep.md's PLUS section.
     python benchmarks/plus_files.py [--plus DIR] [--out DIR] [--figures docs/]
 
 For each file: ``sweep2points`` (with its calibration, where PlusLibData has one) — exit code and
-the one-line outcome; for the bone and spine sweeps also ``reconstruct --preset fast`` (timing,
+the one-line outcome; for the bone and spine sweeps also ``reconstruct`` with the default preset (timing,
 points, faces, data_fit) and a picture of frames with the detected bone (red) and the mesh's cut
 through each frame (green), beside the mesh coloured by its distance to the points. Wall time
 about 2 minutes on the shared 2-core machine.
@@ -117,7 +117,7 @@ def main() -> int:
         print(json.dumps(row, ensure_ascii=False), flush=True)
         if name in RECONSTRUCT and code == 0:
             mesh = args.out / f"{RECONSTRUCT[name]}.ply"
-            cmd = ["reconstruct", args.plus / name, *cal, "--preset", "fast", "-o", mesh, "--quiet"]
+            cmd = ["reconstruct", args.plus / name, *cal, "-o", mesh, "--quiet"]
             code, out, err, dt = cli(*cmd)
             side = json.loads(mesh.with_suffix(".json").read_text()) if code == 0 else {}
             rec = {"file": name, "command": "ultraboneudf " + " ".join(

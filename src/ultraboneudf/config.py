@@ -71,7 +71,7 @@ class DataConfig:
     in the acoustic shadow of the bone (after ``denoise``); 0 = keep them."""
     bridge: float = 0.0
     """Gaps in the data up to this × the local plane radius (``surface_fit_mm``, or the wider radius
-    the fit needed) count as surface: for the ``surface`` distance target and for the support trim
+    the fit needed, at most twice ``surface_fit_mm``) count as surface: for the ``surface`` distance target and for the support trim
     (``extract.trim_mm``, then measured to that surface instead of to the nearest point); 0 = none."""
     rim_reach: float = 0.0
     """``surface`` distance target: past the last points (the rim of the data) the surface goes on

@@ -382,7 +382,7 @@ def _support(points: np.ndarray, planes: LocalPlanes | None, bridge: float) -> n
     planes) the surface bridged across their gaps."""
     if planes is None or bridge <= 0:
         return points
-    return DataSurface(points, planes.normal, bridge * planes.radius)
+    return DataSurface(points, planes.normal, bridge * planes.gap)
 
 
 def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, normalizer: Normalizer,

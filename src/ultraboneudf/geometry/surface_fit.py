@@ -60,11 +60,19 @@ class LocalPlanes:
     spread: np.ndarray    # (N,) robust spread (scaled MAD) of the neighbours about the plane
     count: np.ndarray     # (N,) neighbours within the first radius (in its radius / 4 voxel copy)
     radius: np.ndarray    # (N,) radius of the accepted fit, 0 where none
+    base: float = 0.0     # the first radius tried
 
     @property
     def valid(self) -> np.ndarray:
         """(N,) bool: a plane was fitted."""
         return self.radius > 0
+
+    @property
+    def gap(self) -> np.ndarray:
+        """(N,) the gap scale of each point: its fit radius, at most twice the first radius (the
+        four-fold fits give sparse slices a normal, but a surface across gaps that long would be
+        invented), 0 where there is no plane."""
+        return np.minimum(self.radius, 2.0 * self.base)
 
     def projected(self, points: np.ndarray) -> np.ndarray:
         """``points`` (N, 3) moved onto their planes (unchanged where there is none)."""
@@ -82,12 +90,12 @@ class LocalPlanes:
     def subset(self, keep: np.ndarray) -> "LocalPlanes":
         """The fits of the points selected by a boolean mask or index array."""
         return LocalPlanes(self.normal[keep], self.offset[keep], self.spread[keep], self.count[keep],
-                           self.radius[keep])
+                           self.radius[keep], self.base)
 
     def scaled(self, factor: float) -> "LocalPlanes":
         """The same planes with every length multiplied by ``factor`` (a change of unit)."""
         return LocalPlanes(self.normal, self.offset * factor, self.spread * factor, self.count,
-                           self.radius * factor)
+                           self.radius * factor, self.base * factor)
 
 
 def fit_local_planes(points: np.ndarray, radius: float, view: np.ndarray | None = None,
@@ -97,7 +105,8 @@ def fit_local_planes(points: np.ndarray, radius: float, view: np.ndarray | None 
     point). See the module docstring."""
     pts = np.asarray(points, dtype=np.float64)
     n = len(pts)
-    out = LocalPlanes(np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros(n, dtype=np.int64), np.zeros(n))
+    out = LocalPlanes(np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros(n, dtype=np.int64), np.zeros(n),
+                      float(radius))
     if n == 0 or radius <= 0:
         return out
     todo = np.arange(n)

@@ -73,7 +73,7 @@ def prepare(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
             if cfg.loss.distance_target == "surface":
                 own = planes if rows is None else planes.subset(rows)
                 data.static_distance = as_t(
-                    DataSurface(surface, own.normal, d.bridge * own.radius, d.rim_reach * own.radius)
+                    DataSurface(surface, own.normal, d.bridge * own.gap, d.rim_reach * own.gap)
                     .distance(queries))
         clock("static_nn_s")
         advance()
