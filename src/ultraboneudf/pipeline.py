@@ -27,7 +27,7 @@ from .geometry.normalize import Normalizer
 from .geometry.support import DataSurface
 from .geometry.surface_fit import LocalPlanes, fit_local_planes, shadowed
 from .geometry.voxel import voxel_downsample, voxel_downsample_with
-from .io import save_json, save_mesh, validate_points
+from .io import check_outputs, save_mesh_with_sidecar, validate_points
 from .methods import Fitted, get_method
 from .methods import ultraboneudf as ubu
 from .progress import Progress
@@ -122,15 +122,14 @@ class Reconstruction:
         return out
 
     def save(self, path: str | Path) -> Path:
-        """Write the mesh (format by suffix) and the sidecar ``path.with_suffix('.json')``, atomically.
-        Returns the sidecar path."""
+        """Write the mesh (format by suffix) and its sidecar ``path.with_suffix('.json')`` as a pair
+        (:func:`~ultraboneudf.io.save_mesh_with_sidecar`: both or neither). An existing file is
+        replaced only if it is an earlier output of this package with its sidecar
+        (:func:`~ultraboneudf.io.check_outputs`). Returns the sidecar path."""
         if self.mesh is None:
             raise RuntimeError("no mesh to save: the reconstruction failed")
-        path = Path(path)
-        sidecar = path.with_suffix(".json")
-        save_mesh(self.mesh, path)
-        save_json(self.sidecar(), sidecar)
-        return sidecar
+        path = check_outputs(path, (self.input["path"],) if self.input.get("path") else ())
+        return save_mesh_with_sidecar(self.mesh, path, self.sidecar())
 
 
 def resolve_device(device: str | torch.device) -> torch.device:

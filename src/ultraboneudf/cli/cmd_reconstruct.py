@@ -10,7 +10,7 @@ import numpy as np
 
 from ..config import DEFAULT_PRESET, PRESET_HELP, PRESETS
 from ..errors import InputError
-from ..io import check_mesh_path, load_points, sha256_file
+from ..io import check_outputs, load_points, sha256_file
 from ..methods import METHODS
 from ..pipeline import reconstruct
 from ..progress import Progress
@@ -63,7 +63,7 @@ def read_input(path: Path, args: argparse.Namespace,
 
 
 def run(args: argparse.Namespace) -> int:
-    output = check_mesh_path(args.output)
+    output = check_outputs(args.output, (args.input,))  # before any work: never lose the user's data
     progress = Progress(quiet=args.quiet)
     points, probe, sweep_info = read_input(args.input, args, progress)
     overrides = {} if args.iters is None else {"train.iters": args.iters}
