@@ -96,3 +96,21 @@ def test_bad_input_one_line_exit_2_no_output(tmp_path, case, message):
 def test_usage_error_exit_2():
     assert run_cli("reconstruct").returncode == 2
     assert run_cli("bogus-command").returncode == 2
+
+
+@pytest.mark.parametrize("extra,message", [
+    (["--seed", "-1"], "argument --seed: -1 is below 0"),
+    (["--iters", "0"], "argument --iters: 0 is below 1"),
+    (["--device", "tpu"], "unknown device 'tpu'"),
+    (["--set", "extract.max_depth=30"], "extract.max_depth=30 (between 1 and 11)"),
+    (["--set", "train.lr=-1"], "train.lr=-1.0 (a learning rate in (0, 1])"),
+    (["--set", "extract.trim_mm=-1"], "extract.trim_mm=-1.0 (finite and 0 or more)"),
+    (["--set", "train.lr=1e30"], "train.lr=1e+30 (a learning rate in (0, 1])"),
+])
+def test_out_of_range_options_are_one_line_exit_2(tmp_path, extra, message):
+    src = _cloud(tmp_path / "in.xyz")
+    res = run_cli("reconstruct", src, "-o", tmp_path / "out.ply", "--preset", "fast", "--quiet", *extra)
+    assert res.returncode == 2, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[-1] and "Traceback" not in res.stderr, res.stderr
+    assert not (tmp_path / "out.ply").exists()

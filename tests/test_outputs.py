@@ -142,3 +142,23 @@ def test_a_read_only_folder_is_one_line_before_any_work(tmp_path, capsys):
         _one_error(capsys, "permission denied")
     finally:
         locked.chmod(0o755)
+
+
+@pytest.mark.parametrize("scale,unit,hint", [(0.001, "m", "--units m"), (1000.0, "um", "--units um")])
+def test_a_cloud_in_the_wrong_unit_is_one_line_before_any_work(tmp_path, capsys, scale, unit, hint):
+    """A femur-sized patch (40 mm) written in metres or micrometres is refused with the unit it looks
+    like; ``--units`` converts it and the run goes through, recorded in the sidecar."""
+    cloud = trimesh.load(_cloud_ply(tmp_path / "mm.ply")).vertices * scale
+    src = tmp_path / f"in_{unit}.xyz"
+    np.savetxt(src, cloud)
+    assert main(["reconstruct", str(src), "-o", str(tmp_path / "m.ply"), *FAST]) == 2
+    _one_error(capsys, src.name, hint)
+    assert not (tmp_path / "m.ply").exists()
+    assert main(["reconstruct", str(src), "-o", str(tmp_path / "m.ply"), "--units", unit, *FAST]) == 0
+    side = json.loads((tmp_path / "m.json").read_text())
+    assert side["input"]["units"] == unit
+    lo, hi = trimesh.load(tmp_path / "m.ply").bounds
+    assert 20 < (hi - lo).max() < 60                 # the mesh is in mm
+    with pytest.raises(InputError, match="beyond"):
+        from ultraboneudf.io import check_units
+        check_units(np.array([[0.0, 0.0, 0.0], [2e6, 1.0, 1.0]]))

@@ -138,3 +138,19 @@ def test_training_threads_are_restored():
         with cpu_threads(1):
             raise RuntimeError("boom")
     assert torch.get_num_threads() == before
+
+
+def test_a_diverging_loss_stops_training_naming_the_step_and_the_setting():
+    """A loss that is no longer finite (here from anchor targets at infinity) stops the loop at the
+    next recorded step with one message, instead of training on NaN."""
+    from ultraboneudf.errors import InputError
+
+    data = _plane_data()
+    data.anchor_targets[:] = float("inf")
+    cfg = preset("fast")
+    cfg.train.iters, cfg.train.batch, cfg.train.lr = 300, 4000, 2e-3
+    cfg.loss.warm_start, cfg.loss.lambda_far = 0.0, 0.0
+    net = DistanceMLP((16, 16), generator=torch.Generator().manual_seed(0))
+    with pytest.raises(InputError, match=r"training diverged: the loss is not finite at step 1 of 300; "
+                                         r"lower train.lr \(now 0.002\)"):
+        train(net, data, cfg.loss, cfg.train, seed=0)

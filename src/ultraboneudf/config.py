@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass, field, fields
 from typing import Any, Mapping
 
@@ -495,6 +496,39 @@ def _coerce(current: Any, value: Any, key: str) -> Any:
 def _set(cfg: Config, key: str, value: Any) -> None:
     obj, name = _resolve_key(cfg, key)
     setattr(obj, name, _coerce(getattr(obj, name), value, key))
+
+
+MAX_DEPTH = 11
+"""Deepest octree a run may ask for (2,048 leaves per axis; depth 12 exceeds a workstation's memory)."""
+
+
+def validate(cfg: Config) -> Config:
+    """Raise :class:`InputError` for values no run can use (named by their ``--set`` spelling);
+    returns ``cfg``."""
+    problems = []
+
+    def need(ok: bool, key: str, what: str) -> None:
+        if not ok:
+            section, name = key.split(".")
+            problems.append(f"{key}={getattr(getattr(cfg, section), name)!r} ({what})")
+
+    t, d, e, lo = cfg.train, cfg.data, cfg.extract, cfg.loss
+    need(t.iters >= 1, "train.iters", "at least 1")
+    need(t.batch >= 1, "train.batch", "at least 1")
+    need(math.isfinite(t.lr) and 0 < t.lr <= 1, "train.lr", "a learning rate in (0, 1]")
+    need(t.warmup >= 0, "train.warmup", "0 or more")
+    need(0.0 <= lo.warm_start < 1.0, "loss.warm_start", "a fraction in [0, 1)")
+    need(1 <= e.max_depth <= MAX_DEPTH, "extract.max_depth", f"between 1 and {MAX_DEPTH}")
+    for key in ("data.voxel_size_mm", "data.surface_fit_mm", "data.bridge", "data.rim_reach",
+                "data.shadow_mm", "data.outlier_sigmas", "extract.trim_mm", "extract.fit_mm",
+                "extract.min_leaf_mm"):
+        section, name = key.split(".")
+        value = getattr(getattr(cfg, section), name)
+        need(math.isfinite(value) and value >= 0, key, "finite and 0 or more")
+    need(d.denoise >= 0, "data.denoise", "0 or more passes")
+    if problems:
+        raise InputError("bad configuration: " + "; ".join(problems))
+    return cfg
 
 
 def apply_overrides(cfg: Config, overrides: Mapping[str, Any] | None = None,

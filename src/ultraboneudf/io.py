@@ -31,6 +31,12 @@ MESH_SUFFIXES = (".ply", ".obj", ".stl")
 # --------------------------------------------------------------------------------------------
 # validation
 
+UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 0.001}
+"""Millimetres per unit of the units ``--units`` accepts."""
+PLAUSIBLE_EXTENT_MM = (5.0, 5000.0)
+"""A bone scan spans more than 5 mm and less than 5 m."""
+MAX_COORDINATE_MM = 1e6
+
 
 def validate_points(points: Any, source: str = "points", min_points: int = MIN_POINTS) -> np.ndarray:
     """Check an ``(N, ≥3)`` array of coordinates (mm) and return it as ``(N, 3)`` float64.
@@ -59,6 +65,25 @@ def validate_points(points: Any, source: str = "points", min_points: int = MIN_P
     if sv[1] <= 1e-6 * sv[0]:
         raise InputError(f"{source}: the points are collinear; a surface needs spread in two directions")
     return arr
+
+
+def check_units(points: np.ndarray, source: str = "points") -> None:
+    """Raise :class:`InputError` when ``points`` (N, 3), meant to be millimetres, cannot be: a
+    coordinate beyond 10⁶ mm, or an extent outside :data:`PLAUSIBLE_EXTENT_MM` — naming the unit
+    the numbers look like and the option that converts them."""
+    far = float(np.abs(points).max())
+    if far >= MAX_COORDINATE_MM:
+        raise InputError(f"{source}: a coordinate of {far:.3g} mm is beyond ±10⁶ mm (1 km); the "
+                         f"points cannot be a bone scan in mm")
+    extent = float(np.ptp(points, axis=0).max())
+    lo, hi = PLAUSIBLE_EXTENT_MM
+    if extent < lo:
+        unit = "m" if extent * 1000.0 >= lo else "a unit larger than metres"
+        raise InputError(f"{source}: the points span only {extent:.3g} mm; that looks like {unit}, not "
+                         f"mm (convert to mm, or pass --units m or --units cm)")
+    if extent > hi:
+        raise InputError(f"{source}: the points span {extent:.3g} mm (more than 5 m); that looks like "
+                         f"micrometres, not mm (convert to mm, or pass --units um)")
 
 
 # --------------------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ import torch
 import trimesh
 
 from ._version import __version__
-from .config import DEFAULT_PRESET, Config, DataConfig, ExtractConfig, apply_overrides, preset as make_preset
+from .config import DEFAULT_PRESET, Config, DataConfig, ExtractConfig, apply_overrides, preset as make_preset, validate
 from .errors import InputError
 from .extraction import data_fit, extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
@@ -27,7 +27,7 @@ from .geometry.normalize import Normalizer
 from .geometry.support import DataSurface
 from .geometry.surface_fit import LocalPlanes, fit_local_planes, shadowed
 from .geometry.voxel import voxel_downsample, voxel_downsample_with
-from .io import check_outputs, save_mesh_with_sidecar, validate_points
+from .io import check_outputs, check_units, save_mesh_with_sidecar, validate_points
 from .methods import Fitted, get_method
 from .methods import ultraboneudf as ubu
 from .progress import Progress
@@ -136,7 +136,12 @@ def resolve_device(device: str | torch.device) -> torch.device:
     """``auto`` → CUDA if available, else CPU; anything else must be usable here."""
     if str(device) == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(device)
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise InputError(f"unknown device {str(device)!r}; use auto, cpu, cuda or cuda:N") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise InputError(f"device {str(device)!r} is not supported; use auto, cpu, cuda or cuda:N")
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise InputError("device 'cuda' requested but no CUDA device is available (use --device cpu)")
     return dev
@@ -181,6 +186,7 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
     cfg, entry = _configure(preset, method, config, overrides, assignments)
     dev = resolve_device(device)
     points = validate_points(points_mm, source=source)
+    check_units(points, source)
     probe = _validate_probe(probe_positions, len(points), source)
     seed_everything(seed)
     unit = _to_unit(points, probe, cfg, seed, source)
@@ -215,7 +221,9 @@ def reconstruct_many(clouds_mm: Sequence[Any], preset: str = DEFAULT_PRESET, dev
     units, datas, stages, prep = [], [], [], []
     for cloud, name in zip(clouds, names):
         seed_everything(seed)
-        unit = _to_unit(validate_points(cloud, source=name), None, cfg, seed, name)
+        cloud = validate_points(cloud, source=name)
+        check_units(cloud, name)
+        unit = _to_unit(cloud, None, cfg, seed, name)
         t0 = time.perf_counter()
         stage: dict[str, float] = {}
         datas.append(ubu.prepare(unit.points, cfg, dev, seed, progress, timings=stage, planes=unit.planes))
@@ -257,7 +265,7 @@ def _configure(preset: str, method: str, config: Config | None, overrides: dict[
     if config is None:
         entry.configure(cfg, preset)  # the method's own defaults, before the user's overrides
     apply_overrides(cfg, overrides, assignments)
-    return cfg, entry
+    return validate(cfg), entry
 
 
 def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int,

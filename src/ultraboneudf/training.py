@@ -128,17 +128,23 @@ class LoopLog:
     loop, synchronised with the device."""
 
     def __init__(self, iters: int, advance: Callable[[float], None], device: torch.device,
-                 log_every: int) -> None:
+                 log_every: int, lr: float | None = None) -> None:
         self.iters, self.advance, self.device, self.log_every = iters, advance, device, log_every
+        self.lr = lr
         self.tick = max(1, min(50, iters // 100))
         self.terms: dict[str, list[torch.Tensor]] = {}
         self.start = time.perf_counter()
 
     def step(self, i: int, terms: dict[str, torch.Tensor]) -> None:
-        """Record after the 0-based step ``i``."""
+        """Record after the 0-based step ``i``; stop (:class:`InputError`) when the loss is no longer
+        finite (checked at the recorded steps only: one host read every ``log_every`` steps)."""
         if i % self.log_every == 0 or i == self.iters - 1:
             for key, value in terms.items():
                 self.terms.setdefault(key, []).append(value.detach())
+            if not bool(torch.isfinite(terms["total"]).all()):
+                hint = f"; lower train.lr (now {self.lr:g})" if self.lr is not None else ""
+                raise InputError(f"training diverged: the loss is not finite at step {i + 1} of "
+                                 f"{self.iters}{hint}")
         if (i + 1) % self.tick == 0:
             self.advance(self.tick)
 
@@ -249,7 +255,7 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     net.train()
     threads = train_cfg.threads if device.type == "cpu" else 0
     with cpu_threads(threads), progress.stage("training", iters) as advance:
-        log = LoopLog(iters, advance, device, log_every)
+        log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr)
         for i in range(iters):
             if expand is not None and train_cfg.expand_at > 0 and i == train_cfg.expand_at:
                 net.eval()

@@ -139,7 +139,7 @@ def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: Los
     stacked.train()
     threads = train_cfg.threads if device.type == "cpu" else 0
     with cpu_threads(threads), progress.stage("training", iters) as advance:
-        log = LoopLog(iters, advance, device, log_every)
+        log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr)
         for i in range(iters):
             for group in opt.param_groups:
                 group["lr"] = learning_rate(i, train_cfg.lr, train_cfg.warmup, iters)

@@ -19,13 +19,21 @@ from ..errors import InputError
 COMMANDS = ["reconstruct", "demo", "evaluate", "render", "stats", "sweep2points", "simulate"]
 
 
+class _Parser(argparse.ArgumentParser):
+    """A usage error is one line (``ultraboneudf CMD: error: …``) and exit 2, like a bad input;
+    ``--help`` still shows the whole usage."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="ultraboneudf",
         description="Bone surface meshes (mm) from tracked ultrasound point clouds with neural "
                     "unsigned distance fields (UltraBoneUDF) and DualMesh-UDF extraction.")
     parser.add_argument("--version", action="version", version=f"ultraboneudf {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMANDS:
         try:
             module = importlib.import_module(f".cmd_{name}", __name__)

@@ -10,11 +10,24 @@ import numpy as np
 
 from ..config import DEFAULT_PRESET, PRESET_HELP, PRESETS
 from ..errors import InputError
-from ..io import check_outputs, load_points, sha256_file
+from ..io import UNITS_MM, check_outputs, load_points, sha256_file
 from ..methods import METHODS
 from ..pipeline import reconstruct
 from ..progress import Progress
 from .sweep_input import add_sweep_options, sweep_options_given, sweep_points
+
+def _at_least(low: int):
+    """An argparse type: an integer ≥ ``low`` (a usage error, exit 2, otherwise)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"{value} is below {low}")
+        return value
+    return parse
+
 
 def add_run_options(p: argparse.ArgumentParser, default_preset: str) -> None:
     """Options shared by ``reconstruct`` and ``demo``."""
@@ -22,8 +35,9 @@ def add_run_options(p: argparse.ArgumentParser, default_preset: str) -> None:
                    help="parameter set: " + "; ".join(f"{k}: {v}" for k, v in PRESET_HELP.items())
                         + f" (default: {default_preset})")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N (default: auto)")
-    p.add_argument("--seed", type=int, default=42, help="random seed (default: 42)")
-    p.add_argument("--iters", type=int, default=None, help="training iterations (overrides the preset)")
+    p.add_argument("--seed", type=_at_least(0), default=42, help="random seed, 0 or more (default: 42)")
+    p.add_argument("--iters", type=_at_least(1), default=None,
+                   help="training iterations, 1 or more (overrides the preset)")
     p.add_argument("--set", dest="assignments", action="append", default=[], metavar="KEY=VALUE",
                    help="override any config value, e.g. --set loss.lambda_gs=0 (repeatable)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -39,6 +53,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "and segmentation.")
     p.add_argument("input", type=Path, help="point cloud file or tracked sweep")
     p.add_argument("-o", "--output", type=Path, required=True, help="output mesh (.ply, .obj or .stl)")
+    p.add_argument("--units", default="mm", choices=list(UNITS_MM),
+                   help="unit of a point cloud file's coordinates; they are converted to mm, and the "
+                        "mesh is written in mm (default: mm)")
     p.add_argument("--method", default="ultraboneudf", choices=sorted(METHODS), help="method (default: ultraboneudf)")
     add_run_options(p, DEFAULT_PRESET)
     add_sweep_options(p)
@@ -53,13 +70,16 @@ def read_input(path: Path, args: argparse.Namespace,
     from ..sweep import is_sweep_path
 
     if path.exists() and is_sweep_path(path):
+        if args.units != "mm":
+            raise InputError(f"{path}: --units applies to point cloud files; a sweep's geometry comes "
+                             f"from its calibration (mm)")
         res = sweep_points(path, args, progress)
         return res.points.points, res.points.probe_position, res.info
     given = sweep_options_given(args)
     if given:
         raise InputError(f"{path}: {', '.join(given)} {'apply' if len(given) > 1 else 'applies'} to "
                          f"tracked sweeps, not to a point cloud file")
-    return load_points(path), None, None
+    return load_points(path) * UNITS_MM[args.units], None, None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -74,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"ultraboneudf reconstruct: no surface was found in {args.input}; nothing written "
               "(see the loss history with --set train.iters=… or try another preset)", file=sys.stderr)
         return 1
-    rec.input = {"path": str(args.input.resolve()), "sha256": sha256_file(args.input)}
+    rec.input = {"path": str(args.input.resolve()), "sha256": sha256_file(args.input), "units": args.units}
     if sweep_info is not None:
         rec.input["sweep"] = sweep_info
     sidecar = rec.save(output)
