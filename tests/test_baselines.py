@@ -101,3 +101,13 @@ def test_poisson_backend_errors_are_actionable():
     if not HAS_POISSON:
         with pytest.raises(InputError, match=r"ultraboneudf\[poisson\]"):
             run("poisson")
+
+
+@pytest.mark.parametrize("method", ["carotidudf", "funsr", "capudf", "ultraboneudf_pull"])
+def test_every_method_runs_under_the_default_preset(method):
+    """The default ``robust`` preset's pre-processing (local planes, outliers, denoising) and its
+    ``surface`` distance target reach every method that samples queries as UltraBoneUDF does."""
+    rec = ultraboneudf.reconstruct(patch_points(3000), device="cpu", seed=1, method=method,
+                                   **{**TINY, "train.iters": 30})
+    assert rec.preset == "robust" and rec.config.loss.distance_target == "surface"
+    assert rec.counts["input_points"] == 3000 and "surface_fit_s" in rec.timings

@@ -23,6 +23,7 @@ import torch
 from ..config import Config, SHORT_PRESETS
 from ..fields.mlp import MLPField, count_parameters
 from ..geometry.normals import ultraboneudf_normals
+from ..geometry.surface_fit import LocalPlanes
 from ..progress import QUIET, Progress
 from ..training import train
 from .base import Fitted
@@ -67,11 +68,12 @@ def configure_pull(cfg: Config, preset: str) -> None:
 
 
 def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
-        progress: Progress = QUIET) -> Fitted:
-    """Train the pull-loss UDF on a unit-space cloud; returns the field, the surface rows and (when
-    the extractor needs them) their oriented normals."""
+        progress: Progress = QUIET, planes: LocalPlanes | None = None) -> Fitted:
+    """Train the pull-loss UDF on a unit-space cloud (``planes``: the pipeline's local planes, for
+    the ``surface`` distance target of the warm start); returns the field, the surface rows and
+    (when the extractor needs them) their oriented normals."""
     t0 = time.perf_counter()
-    data = prepare(points, cfg, device, seed, progress)
+    data = prepare(points, cfg, device, seed, progress, planes=planes)
     surface = data.surface.detach().double().cpu().numpy()
     normals = None
     if cfg.extract.mode == "udf2sdf" and cfg.extract.udf2sdf == "normal-sign":

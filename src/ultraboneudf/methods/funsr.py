@@ -15,6 +15,7 @@ from torch import nn
 from ..config import Config, SHORT_PRESETS
 from ..fields.base import normalize
 from ..fields.mlp import MLPField, count_parameters, value_and_grad
+from ..geometry.surface_fit import LocalPlanes
 from ..losses import lsgan_discriminator_loss, lsgan_generator_loss, pull_loss, sign_consistency_loss
 from ..progress import QUIET, Progress
 from ..training import LoopLog, StridedSampler, learning_rate
@@ -79,10 +80,12 @@ def configure(cfg: Config, preset: str) -> None:
 
 
 def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
-        progress: Progress = QUIET, log_every: int = 100) -> Fitted:
-    """Train FUNSR on a unit-space cloud (iteration order of §4.4); returns the SDF field."""
+        progress: Progress = QUIET, log_every: int = 100, planes: LocalPlanes | None = None) -> Fitted:
+    """Train FUNSR on a unit-space cloud (iteration order of §4.4; ``planes``: the pipeline's local
+    planes, which the shared sampling needs for the ``surface`` distance target); returns the SDF
+    field."""
     t0 = time.perf_counter()
-    data = prepare(points, cfg, device, seed, progress, static_targets=True)
+    data = prepare(points, cfg, device, seed, progress, static_targets=True, planes=planes)
     prep_s = time.perf_counter() - t0
     net = build_network(cfg, seed, device)
     disc = Discriminator(generator=torch.Generator().manual_seed(seed + 1)).to(device)
