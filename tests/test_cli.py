@@ -114,3 +114,22 @@ def test_out_of_range_options_are_one_line_exit_2(tmp_path, extra, message):
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[-1] and "Traceback" not in res.stderr, res.stderr
     assert not (tmp_path / "out.ply").exists()
+
+
+def test_help_and_usage_errors_load_neither_torch_nor_the_geometry_stack():
+    """``--help``, ``--version`` and argument errors answer before PyTorch, trimesh or SciPy load
+    (benchmarks/bench_cli.py times them)."""
+    code = ("import sys\nfrom ultraboneudf.cli import main\n"
+            "for argv in (['--help'], ['reconstruct', '--help'], ['simulate', '--help'], ['--version'],"
+            " ['reconstruct', 'x.xyz', '-o', 'y.ply', '--seed', '-1']):\n"
+            "    try:\n        main(argv)\n    except SystemExit:\n        pass\n"
+            "heavy = sorted(m for m in ('torch', 'trimesh', 'scipy') if m in sys.modules)\n"
+            "print('HEAVY', heavy, file=sys.stderr)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert "HEAVY []" in res.stderr, res.stderr[-500:]
+
+
+def test_the_command_line_lists_every_registered_method():
+    from ultraboneudf.methods import METHODS, NAMES
+
+    assert tuple(METHODS) == NAMES

@@ -4,14 +4,35 @@
 >>> points = ultraboneudf.load_points("scan.xyz")                  # (N, 3) mm
 >>> rec = ultraboneudf.reconstruct(points)                        # doctest: +SKIP
 >>> rec.save("bone.ply")                                         # mesh + bone.json sidecar
+
+The names below are imported on first use, so that ``import ultraboneudf`` (and the command
+line's ``--help``) does not load PyTorch.
 """
 
-from ._version import __version__
-from .config import Config, preset
-from .errors import InputError
-from .evaluation import EvalResult, evaluate
-from .io import load_mesh, load_points, save_mesh
-from .pipeline import Reconstruction, reconstruct, reconstruct_many
+from __future__ import annotations
 
-__all__ = ["__version__", "Config", "preset", "InputError", "load_points", "load_mesh", "save_mesh",
-           "reconstruct", "reconstruct_many", "Reconstruction", "evaluate", "EvalResult"]
+import importlib
+from typing import Any
+
+from ._version import __version__
+
+_WHERE = {
+    "Config": "config", "preset": "config", "InputError": "errors",
+    "EvalResult": "evaluation", "evaluate": "evaluation",
+    "load_mesh": "io", "load_points": "io", "save_mesh": "io",
+    "Reconstruction": "pipeline", "reconstruct": "pipeline", "reconstruct_many": "pipeline",
+}
+
+__all__ = ["__version__", *_WHERE]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _WHERE:
+        value = getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

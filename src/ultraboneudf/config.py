@@ -425,6 +425,9 @@ PRESET_HELP = {
 }
 """One line per preset: which to use when (``--help`` and the README)."""
 
+UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 0.001}
+"""Millimetres per unit of the units a point cloud file may be given in (``reconstruct --units``)."""
+
 SHORT_PRESETS = frozenset({"robust", "fast"})
 """Presets made for a CPU budget: the baselines keep the preset's steps and batch there (instead of
 their papers' schedules) and use 128³ grids."""
@@ -502,9 +505,10 @@ MAX_DEPTH = 11
 """Deepest octree a run may ask for (2,048 leaves per axis; depth 12 exceeds a workstation's memory)."""
 
 
-def validate(cfg: Config) -> Config:
+def validate(cfg: Config, trains: bool = True) -> Config:
     """Raise :class:`InputError` for values no run can use (named by their ``--set`` spelling);
-    returns ``cfg``."""
+    returns ``cfg``. ``trains``: the method trains a network (Poisson does not, and sets no
+    iterations)."""
     problems = []
 
     def need(ok: bool, key: str, what: str) -> None:
@@ -513,7 +517,7 @@ def validate(cfg: Config) -> Config:
             problems.append(f"{key}={getattr(getattr(cfg, section), name)!r} ({what})")
 
     t, d, e, lo = cfg.train, cfg.data, cfg.extract, cfg.loss
-    need(t.iters >= 1, "train.iters", "at least 1")
+    need(t.iters >= (1 if trains else 0), "train.iters", "at least 1")
     need(t.batch >= 1, "train.batch", "at least 1")
     need(math.isfinite(t.lr) and 0 < t.lr <= 1, "train.lr", "a learning rate in (0, 1]")
     need(t.warmup >= 0, "train.warmup", "0 or more")

@@ -31,8 +31,6 @@ MESH_SUFFIXES = (".ply", ".obj", ".stl")
 # --------------------------------------------------------------------------------------------
 # validation
 
-UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 0.001}
-"""Millimetres per unit of the units ``--units`` accepts."""
 PLAUSIBLE_EXTENT_MM = (5.0, 5000.0)
 """A bone scan spans more than 5 mm and less than 5 m."""
 MAX_COORDINATE_MM = 1e6

@@ -265,7 +265,7 @@ def _configure(preset: str, method: str, config: Config | None, overrides: dict[
     if config is None:
         entry.configure(cfg, preset)  # the method's own defaults, before the user's overrides
     apply_overrides(cfg, overrides, assignments)
-    return validate(cfg), entry
+    return validate(cfg, trains=entry.trains), entry
 
 
 def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int,

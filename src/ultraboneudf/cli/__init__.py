@@ -14,7 +14,7 @@ import traceback
 import warnings
 
 from .._version import __version__
-from ..errors import InputError
+from ..errors import InputError, SweepWarning
 
 COMMANDS = ["reconstruct", "demo", "evaluate", "render", "stats", "sweep2points", "simulate"]
 
@@ -46,13 +46,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 class _InputWarnings:
-    """Collects tolerated input defects (:class:`~ultraboneudf.sweep.model.SweepWarning`) during a
+    """Collects tolerated input defects (:class:`~ultraboneudf.errors.SweepWarning`) during a
     command and prints them, one line each, when it succeeds; a failed command prints only its
     one error line."""
 
     def __init__(self, command: str) -> None:
-        from ..sweep.model import SweepWarning
-
         self.command, self.category, self.lines = command, SweepWarning, []
         self.default = warnings.showwarning
 

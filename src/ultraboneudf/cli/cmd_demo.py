@@ -6,10 +6,6 @@ import argparse
 from pathlib import Path
 
 from ..config import DEFAULT_PRESET
-from ..io import atomic_write_bytes, save_json, save_mesh, sha256_file
-from ..pipeline import reconstruct
-from ..progress import Progress
-from ..synth import bone_phantom
 from .cmd_reconstruct import add_run_options
 
 
@@ -29,6 +25,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..evaluation import evaluate
+    from ..io import atomic_write_bytes, save_json, save_mesh, sha256_file
+    from ..pipeline import reconstruct
+    from ..progress import Progress
+    from ..synth import bone_phantom
 
     progress = Progress(quiet=args.quiet)
     out: Path = args.out

@@ -6,8 +6,6 @@ import argparse
 import sys
 
 from ..errors import InputError
-from ..io import load_mesh, load_points, save_json
-from ..progress import Progress
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -41,6 +39,8 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.cmd_support import load_optional_mesh
     from ..evaluation.metrics import evaluate
     from ..extraction.quality import mesh_quality
+    from ..io import load_mesh, load_points, save_json
+    from ..progress import Progress
 
     if args.samples < 1:
         raise InputError(f"--samples: must be at least 1, got {args.samples}")

@@ -5,16 +5,17 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from ..config import DEFAULT_PRESET, PRESET_HELP, PRESETS
+from ..config import DEFAULT_PRESET, PRESET_HELP, PRESETS, UNITS_MM
 from ..errors import InputError
-from ..io import UNITS_MM, check_outputs, load_points, sha256_file
-from ..methods import METHODS
-from ..pipeline import reconstruct
-from ..progress import Progress
+from ..methods import NAMES
 from .sweep_input import add_sweep_options, sweep_options_given, sweep_points
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from ..progress import Progress
 
 def _at_least(low: int):
     """An argparse type: an integer ≥ ``low`` (a usage error, exit 2, otherwise)."""
@@ -56,7 +57,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--units", default="mm", choices=list(UNITS_MM),
                    help="unit of a point cloud file's coordinates; they are converted to mm, and the "
                         "mesh is written in mm (default: mm)")
-    p.add_argument("--method", default="ultraboneudf", choices=sorted(METHODS), help="method (default: ultraboneudf)")
+    p.add_argument("--method", default="ultraboneudf", choices=sorted(NAMES), help="method (default: ultraboneudf)")
     add_run_options(p, DEFAULT_PRESET)
     add_sweep_options(p)
     p.set_defaults(func=run)
@@ -67,6 +68,7 @@ def read_input(path: Path, args: argparse.Namespace,
     """Points (mm) from a cloud file, or compounded from a sweep (a folder or a sequence file); for
     a sweep also the probe position of each point (mm, same frame) and what the sweep gave
     (pose chain, spacing, shear, segmentation; for the sidecar), else ``None``."""
+    from ..io import load_points
     from ..sweep import is_sweep_path
 
     if path.exists() and is_sweep_path(path):
@@ -83,6 +85,10 @@ def read_input(path: Path, args: argparse.Namespace,
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..io import check_outputs, sha256_file
+    from ..pipeline import reconstruct
+    from ..progress import Progress
+
     output = check_outputs(args.output, (args.input,))  # before any work: never lose the user's data
     progress = Progress(quiet=args.quiet)
     points, probe, sweep_info = read_input(args.input, args, progress)

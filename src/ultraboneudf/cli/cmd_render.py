@@ -6,7 +6,6 @@ import argparse
 from pathlib import Path
 
 from ..errors import InputError
-from ..io import load_mesh, load_points
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -43,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.cmd_support import load_optional_mesh
     from ..evaluation.render import parse_view, reference_points, render_distance_png, render_grid_png
     from ..evaluation.viewer import write_viewer
+    from ..io import load_mesh, load_points
 
     out = Path(args.out)
     kind = out.suffix.lower()

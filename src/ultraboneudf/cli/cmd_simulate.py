@@ -7,11 +7,10 @@ import dataclasses
 from pathlib import Path
 
 from ..errors import InputError
-from ..progress import Progress
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..synth.simulator import NOISE_PRESETS, SimulationConfig
+    from ..synth.sweep_config import NOISE_PRESETS, SimulationConfig
 
     names = ", ".join(f.name for f in dataclasses.fields(SimulationConfig))
     p = sub.add_parser(
@@ -49,6 +48,7 @@ def _parse_value(text: str):
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..progress import Progress
     from ..synth.simulator import config_with_noise, load_bone_mesh, simulate_sweep
 
     out: Path = args.output

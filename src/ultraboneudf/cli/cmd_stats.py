@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 
 from ..errors import InputError
-from ..io import atomic_write_bytes
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -35,6 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..evaluation.stats import compare_to_baseline, read_results_csv
     from ..evaluation.tables import comparisons_table, format_table, results_table
+    from ..io import atomic_write_bytes
 
     records = read_results_csv(args.results)
     methods = [m.strip() for m in args.methods.split(",")] if args.methods else None

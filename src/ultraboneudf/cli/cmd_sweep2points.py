@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io import atomic_write_bytes
 from ..progress import Progress
 from .sweep_input import add_sweep_options, sweep_points
 
@@ -97,6 +96,8 @@ def _write_overlays(sweep, masks: np.ndarray, folder: Path) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..io import atomic_write_bytes
+
     progress = Progress(quiet=args.quiet)
     out: Path = args.output
     if out.suffix.lower() not in POINT_SUFFIXES:

@@ -19,15 +19,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from dataclasses import field as dc_field
-from typing import Any, Callable
-
-import numpy as np
-import torch
-import trimesh
+from typing import TYPE_CHECKING, Any, Callable
 
 from ..config import Config
-from ..fields.base import Field
-from ..progress import Progress
+
+if TYPE_CHECKING:  # the registry is read by the command line before PyTorch is needed
+    import numpy as np
+    import torch
+    import trimesh
+
+    from ..fields.base import Field
+    from ..progress import Progress
 
 
 @dataclass
@@ -47,7 +49,7 @@ class Fitted:
     """Choices the method resolved at run time (e.g. ``poisson_orientation``), for the sidecar."""
 
 
-FitFunction = Callable[[np.ndarray, Config, torch.device, int, Progress], Fitted]
+FitFunction = Callable[["np.ndarray", Config, "torch.device", int, "Progress"], Fitted]
 ConfigureFunction = Callable[[Config, str], None]
 
 
@@ -66,3 +68,5 @@ class Method:
     summary: str = ""
     takes_probe: bool = False
     takes_planes: bool = False
+    trains: bool = True
+    """``fit`` trains a network for ``train.iters`` steps (Poisson solves one linear system)."""

@@ -26,11 +26,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ..errors import SweepWarning  # noqa: F401  (re-exported: sweep.model.SweepWarning)
 from .transforms import pixel_to_image_matrix
-
-
-class SweepWarning(UserWarning):
-    """A tolerated defect of a sweep file (duplicated key, skipped INVALID frame, …)."""
 
 
 @dataclass

@@ -1,0 +1,128 @@
+"""The simulator's parameters and named noise levels (no heavy imports: the command line's help
+lists them). :mod:`ultraboneudf.synth.simulator` runs the simulation."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+from ..errors import InputError
+
+
+@dataclass
+class SimulationConfig:
+    """Parameters of :func:`simulate_sweep` (lengths in mm, angles in degrees)."""
+
+    width_px: int = 256
+    """Image width (scan lines)."""
+    height_px: int = 320
+    """Image height (samples per scan line)."""
+    spacing_mm: float = 0.15
+    """Pixel size, both directions."""
+    frame_spacing_mm: float = 0.8
+    """Mean distance between frames along the sweep (ignored when ``n_frames`` is set)."""
+    n_frames: int | None = None
+    """Number of frames (default: from the sweep length and ``frame_spacing_mm``)."""
+    sweep_length_mm: float | None = None
+    """Length of the sweep (default: the bone's extent along the sweep axis − 2 ``margin_mm``)."""
+    margin_mm: float = 5.0
+    """Distance kept from the bone's ends."""
+    sweep_axis: tuple[float, float, float] | None = None
+    """Direction of the sweep (default: the mesh's longest principal axis)."""
+    view: tuple[float, float, float] | None = None
+    """Direction from the bone to the probe (default: the smallest principal axis)."""
+    tissue_depth_mm: float = 10.0
+    """Soft tissue between the probe face and the highest bone point in view."""
+    speed_variation: float = 0.3
+    """Relative amplitude of the (smooth) speed changes along the sweep."""
+    tilt_deg: float = 8.0
+    """Amplitude of the slow tilt of the image plane about the lateral axis."""
+    rock_deg: float = 4.0
+    """Amplitude of the slow in-plane rotation."""
+    jitter_mm: float = 0.3
+    """Hand jitter, translation (per axis, smooth over a few frames)."""
+    jitter_deg: float = 0.5
+    """Hand jitter, rotation (per axis)."""
+    tracking_noise_mm: float = 0.1
+    """Tracking error of the recorded poses, translation (per axis, independent per frame)."""
+    tracking_noise_deg: float = 0.1
+    """Tracking error of the recorded poses, rotation (per axis, about the probe face centre)."""
+    frame_rate_hz: float = 30.0
+    """Frames per second (timestamps in ms)."""
+    max_incidence_deg: float = 75.0
+    """Surfaces hit more obliquely return no echo and are not visible truth."""
+    speckle_axial_mm: float = 0.12
+    """Speckle correlation length along the beam."""
+    speckle_lateral_mm: float = 0.3
+    """Speckle correlation length across the beams."""
+    n_fascia: int = 3
+    """Bright soft-tissue lines (no shadow) per image."""
+    shadow_level: float = 0.06
+    """Brightness under the bone relative to tissue."""
+    pred_gap_fraction: float = 0.1
+    """Fraction of visible columns missing from the predicted mask (in runs)."""
+    pred_gap_mean_mm: float = 2.0
+    """Mean length of a gap."""
+    pred_max_incidence_deg: float = 60.0
+    """Echoes more oblique than this fade out of the predicted mask (all gone at
+    ``max_incidence_deg``)."""
+    pred_jitter_px: float = 1.0
+    """Boundary jitter of the predicted mask (std, pixels, smooth along the frame)."""
+    pred_bias_px: float = 0.5
+    """Per-frame offset of the predicted boundary (std, pixels)."""
+    pred_thickness_px: int = 3
+    """Thickness of the predicted mask band."""
+    pred_fp_per_frame: float = 0.3
+    """Mean number of off-surface false-positive segments per frame."""
+    pred_beam_noise_mm: float = 0.0
+    """Independent noise (std, mm) of the predicted boundary along the beam, per scan line."""
+    pred_fp_fraction: float = 0.0
+    """Fraction of the predicted scan lines whose bone pixel is a false echo in the shadow
+    instead: the true surface is missed there and a pixel lies ``U(0, pred_fp_depth_mm)`` deeper."""
+    pred_fp_depth_mm: float = 10.0
+    """How far under the surface the scattered false echoes of ``pred_fp_fraction`` reach."""
+    missing_runs: int = 0
+    """Runs of consecutive frames missing from the recording (probe lifted, tracking lost); the
+    visible truth still covers them, so a reconstruction must bridge them."""
+    missing_run_mm: float = 4.0
+    """Length of each missing run along the sweep."""
+    gt_step_mm: float = 0.25
+    """Pose interpolation step of the visible-truth pass."""
+    seed: int = 0
+    """Random seed: the same mesh, config and seed give the same sweep."""
+
+    def replace(self, **changes: Any) -> "SimulationConfig":
+        return dataclasses.replace(self, **changes)
+
+
+NOISE_PRESETS: dict[str, dict[str, float]] = {
+    "none": dict(speed_variation=0.0, tilt_deg=0.0, rock_deg=0.0, jitter_mm=0.0, jitter_deg=0.0,
+                 tracking_noise_mm=0.0, tracking_noise_deg=0.0, pred_gap_fraction=0.0,
+                 pred_jitter_px=0.0, pred_bias_px=0.0, pred_fp_per_frame=0.0,
+                 pred_max_incidence_deg=75.0),
+    "default": {},
+    "high": dict(speed_variation=0.5, tilt_deg=12.0, rock_deg=8.0, jitter_mm=0.6, jitter_deg=1.0,
+                 tracking_noise_mm=0.3, tracking_noise_deg=0.3, pred_gap_fraction=0.25,
+                 pred_jitter_px=2.0, pred_bias_px=1.0, pred_fp_per_frame=1.0),
+    "moderate": dict(pred_beam_noise_mm=0.3, frame_spacing_mm=0.5),
+    "hard": dict(pred_beam_noise_mm=0.8, pred_fp_fraction=0.03, pred_fp_depth_mm=10.0,
+                 frame_spacing_mm=1.5, missing_runs=3, missing_run_mm=4.0,
+                 tracking_noise_mm=0.3, tracking_noise_deg=0.3),
+}
+"""Named noise levels for ``simulate --noise``: ``none`` (ideal sweep and masks), ``default``,
+``high`` (a shaky hand, poor masks), and the robustness benchmark's ``moderate`` (0.3 mm noise along
+the beam, frames every 0.5 mm) and ``hard`` (0.8 mm noise along the beam, 3% of the scan lines a
+false echo up to 10 mm under the surface, frames every 1.5 mm with three 4 mm runs missing,
+tracking error 0.3 mm / 0.3° per frame), each on top of ``default``'s segmentation errors."""
+
+
+def config_with_noise(noise: str = "default", **overrides: Any) -> SimulationConfig:
+    """A :class:`SimulationConfig` at a named noise level, with field overrides."""
+    if noise not in NOISE_PRESETS:
+        raise InputError(f"unknown noise level {noise!r}; choose from {', '.join(NOISE_PRESETS)}")
+    names = {f.name for f in dataclasses.fields(SimulationConfig)}
+    unknown = sorted(set(overrides) - names)
+    if unknown:
+        raise InputError(f"unknown simulation option(s) {', '.join(unknown)}")
+    return SimulationConfig(**{**NOISE_PRESETS[noise], **overrides})
