@@ -71,7 +71,8 @@ def test_train_many_rejects_unsupported_losses():
         train_many(_nets(1), [_data(0)], cfg.loss, cfg.train, [0])
 
 
-def test_reconstruct_many_equals_reconstruct():
+@pytest.mark.parametrize("preset", ["fast", "robust"])   # robust: the surface distance target too
+def test_reconstruct_many_equals_reconstruct(preset):
     rng = np.random.default_rng(0)
     clouds = []
     for r in (20.0, 25.0):   # two quarter-cylinder patches (mm)
@@ -81,9 +82,9 @@ def test_reconstruct_many_equals_reconstruct():
     # field's mesh is perforated near the rims, and which small holes open is fp32 noise
     small = {"train.iters": 400, "train.batch": 1000, "train.warmup": 50, "extract.max_depth": 6,
              "data.max_points": 3000, "model.hidden": (64, 64, 64)}
-    many = ultraboneudf.reconstruct_many(clouds, preset="fast", device="cpu", seed=1, **small)
+    many = ultraboneudf.reconstruct_many(clouds, preset=preset, device="cpu", seed=1, **small)
     for cloud, rec in zip(clouds, many):
-        alone = ultraboneudf.reconstruct(cloud, preset="fast", device="cpu", seed=1, **small)
+        alone = ultraboneudf.reconstruct(cloud, preset=preset, device="cpu", seed=1, **small)
         assert rec.mesh is not None and alone.mesh is not None
         # Step for step equal in exact arithmetic; in fp32 the batched and single matrix products
         # round differently and over 400 steps the nearest-neighbour feet amplify that, so compare
