@@ -106,6 +106,8 @@ def test_usage_error_exit_2():
     (["--set", "train.lr=-1"], "train.lr=-1.0 (a learning rate in (0, 1])"),
     (["--set", "extract.trim_mm=-1"], "extract.trim_mm=-1.0 (finite and 0 or more)"),
     (["--set", "train.lr=1e30"], "train.lr=1e+30 (a learning rate in (0, 1])"),
+    (["--set", "loss.os_rows=-5"], "loss.os_rows=-5 (0 (all) or more)"),
+    (["--set", "loss.gs_form=pairs"], "loss.gs_form='pairs' (per_anchor or broadcast)"),
 ])
 def test_out_of_range_options_are_one_line_exit_2(tmp_path, extra, message):
     src = _cloud(tmp_path / "in.xyz")

@@ -14,6 +14,7 @@ def test_presets_differ_where_paper_and_code_disagree():
     assert off.extract.valid_threshold == 0.01 and pap.extract.valid_threshold == 0.002
     assert off.extract.max_depth == pap.extract.max_depth == 9
     assert pap.extract.plane_factor == 0.15 and pap.extract.sv_threshold == 0.08
+    assert off.loss.gs_form == "broadcast" and pap.loss.gs_form == "per_anchor"
 
 
 def test_overrides_by_section_bare_name_and_string():

@@ -98,12 +98,34 @@ def test_fit_warnings_name_what_is_missing_or_unsupported(small_run):
     assert unsupported.startswith("21.0% of the mesh area is 3 mm or more from every input point")
     assert unsupported.endswith("surface the data does not support")  # the trim is already on
     # the advice depends on the configuration that made the mesh
-    for section, key, value, advice in (("extract", "trim_mm", 0.0, "--set extract.trim_mm=3 removes it"),
-                                        ("data", "bridge", 1.0, "--set data.bridge=0 leaves the gaps open)")):
+    for section, key, value, cli, python in (
+            ("extract", "trim_mm", 0.0, "--set extract.trim_mm=3 removes it", "extract__trim_mm=3 removes it"),
+            ("data", "bridge", 1.0, "--set data.bridge=0 leaves the gaps open)", "data__bridge=0 leaves the gaps open)")):
         cfg = ultraboneudf.Config.from_dict(rec.config.to_dict())
         setattr(getattr(cfg, section), key, value)
-        assert dataclasses.replace(bad, config=cfg).fit_warnings()[1].endswith(advice)
+        assert dataclasses.replace(bad, config=cfg).fit_warnings(cli=True)[1].endswith(cli)
+        assert dataclasses.replace(bad, config=cfg).fit_warnings()[1].endswith(python)
+    assert missing.endswith("try another seed= or preset=")
+    assert bad.fit_warnings(cli=True)[0].endswith("try another --seed or --preset")
     assert dataclasses.replace(rec, data_fit={}).fit_warnings() == []
+
+
+def test_a_mesh_that_misses_its_input_is_a_python_warning():
+    """Half the cloud is a far-off patch the short run cannot cover: reconstruct() warns with the
+    sentence of fit_warnings(), naming the source."""
+    import warnings
+
+    from ultraboneudf.errors import FitWarning
+
+    pts = patch_points()
+    far = pts[: len(pts) // 20] + np.array([0.0, 0.0, 400.0])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rec = ultraboneudf.reconstruct(np.concatenate([pts, far]), preset="fast", device="cpu", seed=3,
+                                       source="two patches", **SMALL)
+    fits = [w for w in caught if issubclass(w.category, FitWarning)]
+    assert [str(w.message) for w in fits] == [f"two patches: {t}" for t in rec.fit_warnings()]
+    assert fits, rec.data_fit
 
 
 def test_same_seed_same_mesh_on_cpu(small_run):

@@ -45,11 +45,16 @@ def test_stacked_network_matches_its_members():
     torch.testing.assert_close(back[2](x[2]), nets[2](x[2]))
 
 
-@pytest.mark.parametrize("gs_anchors", [0, 64])
-def test_train_many_equals_separate_runs(gs_anchors):
+@pytest.mark.parametrize("gs_anchors,os_rows,gs_form", [(0, None, "per_anchor"), (64, None, "per_anchor"),
+                                                        (0, 0, "per_anchor"), (64, 32, "per_anchor"),
+                                                        (0, None, "broadcast"), (64, None, "broadcast")])
+def test_train_many_equals_separate_runs(gs_anchors, os_rows, gs_form):
+    """os_rows None: no L_OS; 0: L_OS on every surface point (padded); > 0: drawn each step."""
     cfg = preset("fast")
     cfg.train.iters, cfg.train.batch, cfg.train.warmup, cfg.train.threads = 40, 200, 4, 0
-    cfg.loss.gs_anchors = gs_anchors
+    cfg.loss.gs_anchors, cfg.loss.gs_form = gs_anchors, gs_form
+    if os_rows is not None:
+        cfg.loss.lambda_os, cfg.loss.os_rows = 1.0, os_rows
     cfg.loss.warm_start = 0.25
     datas = [_data(0), _data(1, bump=0.05)]     # different anchor counts and query totals
     assert len(datas[0].queries) != len(datas[1].queries)
@@ -58,7 +63,8 @@ def test_train_many_equals_separate_runs(gs_anchors):
     for k in range(2):
         net = _nets(2)[k]
         alone = train(net, datas[k], cfg.loss, cfg.train, seeds[k], log_every=1).history
-        for key in ("total", "warm", "tangent", "gs", "far"):
+        keys = ("total", "warm", "tangent", "gs", "far") + (("os",) if os_rows is not None else ())
+        for key in keys:
             np.testing.assert_allclose(results[k].history[key], alone[key], rtol=2e-4, atol=1e-6)
         x = torch.randn(100, 3) * 0.4
         torch.testing.assert_close(trained[k](x), net(x), rtol=1e-3, atol=1e-4)

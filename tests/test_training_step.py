@@ -51,7 +51,7 @@ def test_optimised_and_plain_steps_give_the_same_losses_for_50_iterations(tangen
     histories = {}
     for step in ("plain", "optimised"):
         cfg = preset("official")
-        cfg.loss.tangent_norm = tangent_norm
+        cfg.loss.tangent_norm, cfg.loss.gs_form = tangent_norm, "per_anchor"
         cfg.train.iters, cfg.train.batch, cfg.train.warmup, cfg.train.step = 50, 500, 5, step
         net = DistanceMLP((64, 128, 128), generator=torch.Generator().manual_seed(4))
         histories[step] = train(net, data, cfg.loss, cfg.train, seed=7, log_every=1).history
@@ -125,6 +125,26 @@ def test_far_term_is_the_static_distance_error_beyond_the_threshold():
     expected = ((net(q) - d).abs() * far).sum() / len(q)
     torch.testing.assert_close(terms["far"], expected.detach(), rtol=1e-5, atol=1e-7)
     torch.testing.assert_close(terms["total"], terms["tangent"] + 2.0 * terms["far"])
+
+
+def test_broadcast_global_shape_loss_is_the_reference_mse_and_its_closed_form():
+    """The reference's ``nn.MSELoss()(u (G, 1), t (G,))`` broadcasts to G × G pairs."""
+    import warnings
+
+    from ultraboneudf.losses import global_shape_loss
+
+    g = torch.Generator().manual_seed(0)
+    u, t = torch.rand(50, generator=g), torch.rand(50, generator=g) ** 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)   # PyTorch warns about the broadcast
+        reference = torch.nn.MSELoss()(u[:, None], t)
+    torch.testing.assert_close(global_shape_loss(u, t, "broadcast"), reference)
+    closed = ((u - t.mean()) ** 2).mean() + ((t - t.mean()) ** 2).mean()
+    torch.testing.assert_close(global_shape_loss(u, t, "broadcast"), closed)
+    torch.testing.assert_close(global_shape_loss(u, t, "per_anchor"), ((u - t) ** 2).mean())
+    assert float(global_shape_loss(t, t, "per_anchor")) == 0.0 < float(global_shape_loss(t, t, "broadcast"))
+    with pytest.raises(ValueError, match="form"):
+        global_shape_loss(u, t, "pairs")
 
 
 def test_training_threads_are_restored():

@@ -137,6 +137,11 @@ class LossConfig:
     """Residual penalty of the tangent loss: ``l1`` (official code) or ``l2`` (paper, Eq. 6)."""
     lambda_tangent: float = 1.0
     lambda_gs: float = 0.01
+    gs_form: str = "broadcast"
+    """How ``L_GS`` pairs outputs and targets: ``per_anchor``, ``mean_i (u(ρ_i) − t_i)²`` (the paper's
+    Eq. 7); ``broadcast``, ``mean_i mean_j (u(ρ_i) − t_j)²`` = ``mean_i (u(ρ_i) − mean t)² + var t``,
+    what the reference computes (``nn.MSELoss`` of a (G, 1) output against (G,) targets broadcasts to
+    G × G), which pulls every anchor toward the mean target instead of its own."""
     warm_start: float = 0.0
     """Fraction of ``train.iters`` at the start that regress ``u(q)`` on ``‖q − t(q)‖`` (L1, static
     nearest surface point) instead of the main loss; then the main loss takes over with the same
@@ -160,7 +165,12 @@ class LossConfig:
     """Anchors drawn at random (with replacement) for ``L_GS`` at each step; 0 = all anchors every
     step (the reference). A subset is an unbiased estimate of the same loss at a fraction of the cost."""
     lambda_os: float = 0.0
-    """On-surface term (Eq. 9); experiment E5 only."""
+    """On-surface term ``mean u(p)²`` over the surface points (Eq. 9): experiment E5, and the
+    ``robust`` preset, where it holds the zero level on the data the tangent phase alone can leave
+    above zero (a far part of the bone, seen by few frames)."""
+    os_rows: int = 0
+    """Surface points drawn at random (with replacement) for ``L_OS`` and ``L_Eik`` at each step;
+    0 = all of them every step (the reference)."""
     lambda_eik: float = 0.0
     """Eikonal term (Eq. 10); experiment E5 only."""
     lambda_scc: float = 0.005
@@ -318,6 +328,7 @@ def _paper() -> Config:
     cfg.data = DataConfig(subset="fps", max_points=40_000, grid_queries=0, drop_to_multiple=0,
                           anchors="bbox", anchor_squared_target=False, anchor_min_target=-1.0)
     cfg.loss.tangent_norm = "l2"
+    cfg.loss.gs_form = "per_anchor"
     # 256 cells across the object (depth 9 on [−1, 1]³) with the official DMU thresholds (§1.11).
     cfg.extract = ExtractConfig(**{**DMU_DEFAULTS, "max_depth": 9})
     # Without grid queries the far field is free to overestimate; test the band from 0.125-unit cells.
@@ -352,6 +363,7 @@ def _fast() -> Config:
     cfg.data.drop_to_multiple = 0
     cfg.model.hidden = (64, 64, 64, 64)
     cfg.model.geometric_init_radius = 0.1
+    cfg.loss.gs_form = "per_anchor"
     cfg.loss.warm_start = 0.1
     cfg.loss.lambda_far = 1.0
     cfg.loss.far_threshold = 0.0
@@ -381,7 +393,9 @@ def _robust() -> Config:
     between the points across gaps up to the plane's radius, instead of the distance to the nearest
     point, which between slices lies beside the query rather than under it; past the data's rims
     that surface goes on for half the plane radius (2 mm), where an oblique echo faded. The support
-    trim measures to the bridged surface, so bridged gaps stay closed. Leaves are kept ≥ 0.75 mm, so
+    trim measures to the bridged surface, so bridged gaps stay closed. ``L_OS`` on 256 surface points
+    a step pins the zero level to the data where few frames saw the bone and the tangent phase
+    alone leaves the field above zero there. Leaves are kept ≥ 0.75 mm, so
     a small bone is not meshed finer than its data resolve."""
     cfg = _fast()
     cfg.data.surface_fit_mm = 4.0
@@ -390,6 +404,8 @@ def _robust() -> Config:
     cfg.data.bridge = 1.0
     cfg.data.rim_reach = 0.5
     cfg.loss.distance_target = "surface"
+    cfg.loss.lambda_os = 10.0
+    cfg.loss.os_rows = 256
     cfg.extract.min_leaf_mm = 0.75
     return cfg
 
@@ -505,6 +521,10 @@ MAX_DEPTH = 11
 """Deepest octree a run may ask for (2,048 leaves per axis; depth 12 exceeds a workstation's memory)."""
 
 
+GS_FORMS = ("per_anchor", "broadcast")
+"""The forms of ``L_GS`` (:attr:`LossConfig.gs_form`)."""
+
+
 def validate(cfg: Config, trains: bool = True) -> Config:
     """Raise :class:`InputError` for values no run can use (named by their ``--set`` spelling);
     returns ``cfg``. ``trains``: the method trains a network (Poisson does not, and sets no
@@ -530,6 +550,9 @@ def validate(cfg: Config, trains: bool = True) -> Config:
         value = getattr(getattr(cfg, section), name)
         need(math.isfinite(value) and value >= 0, key, "finite and 0 or more")
     need(d.denoise >= 0, "data.denoise", "0 or more passes")
+    need(lo.gs_anchors >= 0, "loss.gs_anchors", "0 (all) or more")
+    need(lo.os_rows >= 0, "loss.os_rows", "0 (all) or more")
+    need(lo.gs_form in GS_FORMS, "loss.gs_form", " or ".join(GS_FORMS))
     if problems:
         raise InputError("bad configuration: " + "; ".join(problems))
     return cfg

@@ -9,5 +9,10 @@ class InputError(ValueError):
     """Bad user input. The message names the file or value and says what is wrong with it."""
 
 
+class FitWarning(UserWarning):
+    """The mesh does not fit its input (``Reconstruction.fit_warnings``): input points far from the
+    mesh, or mesh area far from every input point."""
+
+
 class SweepWarning(UserWarning):
     """A tolerated defect of a sweep file (duplicated key, skipped INVALID frame, …)."""

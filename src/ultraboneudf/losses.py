@@ -76,9 +76,16 @@ def lsgan_generator_loss(d_fake: torch.Tensor) -> torch.Tensor:
     return (d_fake - 1.0).square().mean()
 
 
-def global_shape_loss(u_anchor: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """``L_GS`` = mean squared error between ``u(ρ)`` and the anchor targets (Eq. 7)."""
-    return (u_anchor - target).square().mean()
+def global_shape_loss(u_anchor: torch.Tensor, target: torch.Tensor, form: str = "per_anchor") -> torch.Tensor:
+    """``L_GS`` of the anchors' outputs (G,) against their targets (G,): ``per_anchor``, the mean
+    squared error (Eq. 7); ``broadcast``, the mean over all G × G output–target pairs, as the
+    reference's ``nn.MSELoss`` of (G, 1) against (G,) computes it, in its closed form
+    ``mean (u − mean t)² + var t`` (O(G) instead of G² memory)."""
+    if form == "per_anchor":
+        return (u_anchor - target).square().mean()
+    if form == "broadcast":
+        return (u_anchor - target.mean()).square().mean() + target.var(unbiased=False)
+    raise ValueError(f"unknown L_GS form {form!r}")
 
 
 def on_surface_loss(u_surface: torch.Tensor) -> torch.Tensor:

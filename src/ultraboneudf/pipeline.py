@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import random
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -20,7 +21,7 @@ import trimesh
 
 from ._version import __version__
 from .config import DEFAULT_PRESET, Config, DataConfig, ExtractConfig, apply_overrides, preset as make_preset, validate
-from .errors import InputError
+from .errors import FitWarning, InputError
 from .extraction import data_fit, extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
 from .geometry.normalize import Normalizer
@@ -97,25 +98,33 @@ class Reconstruction:
             "loss_history": self.history,
         }
 
-    def fit_warnings(self, limit: float = 0.01) -> list[str]:
+    def fit_warnings(self, limit: float = 0.01, cli: bool = False) -> list[str]:
         """One sentence per ``data_fit`` figure above ``limit`` (a fraction): input the mesh does not
-        reach, or mesh area far from every input point. Empty when the mesh fits its input."""
+        reach, or mesh area far from every input point. Empty when the mesh fits its input. The
+        advice is spelled for Python (``seed=``, ``extract__trim_mm=``) or, with ``cli``, for the
+        command line (``--seed``, ``--set extract.trim_mm=``). :func:`reconstruct` also issues each
+        as a :class:`~ultraboneudf.errors.FitWarning`."""
         fit, out = self.data_fit, []
         if not fit:
             return out
+
+        def setting(key: str, value: str) -> str:
+            return f"--set {key}={value}" if cli else f"{key.replace('.', '__')}={value}"
+
         t = fit["threshold_mm"]
         if fit["input_far_fraction"] > limit:
+            advice = "another --seed or --preset" if cli else "another seed= or preset="
             out.append(f"{100 * fit['input_far_fraction']:.1f}% of the input points are more than {t:g} mm "
                        "from the mesh (the field did not fit there, the mesh stops short of the data's "
-                       "rim, or the points are outliers); try another --seed or --preset")
+                       f"rim, or the points are outliers); try {advice}")
         if fit["mesh_far_area_fraction"] > limit:
             text = (f"{100 * fit['mesh_far_area_fraction']:.1f}% of the mesh area is {t:g} mm or more "
                     "from every input point: ")
             if self.config.extract.trim_mm <= 0:
-                text += f"surface the data does not support; --set extract.trim_mm={t:g} removes it"
+                text += f"surface the data does not support; {setting('extract.trim_mm', f'{t:g}')} removes it"
             elif self.config.data.bridge > 0:
-                text += ("surface interpolated across gaps in the data (data.bridge; "
-                         "--set data.bridge=0 leaves the gaps open)")
+                text += (f"surface interpolated across gaps in the data (data.bridge; "
+                         f"{setting('data.bridge', '0')} leaves the gaps open)")
             else:
                 text += "surface the data does not support"
             out.append(text)
@@ -194,8 +203,15 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
     if entry.takes_planes:
         extra["planes"] = unit.planes
     fitted = entry.fit(unit.points, cfg, dev, seed, progress, **extra)
-    return _finish(fitted, unit, cfg, dev, progress, method, preset if config is None else "custom", seed,
-                   t_start)
+    rec = _finish(fitted, unit, cfg, dev, progress, method, preset if config is None else "custom", seed,
+                  t_start)
+    _warn_fit(rec, source)
+    return rec
+
+
+def _warn_fit(rec: Reconstruction, source: str) -> None:
+    for text in rec.fit_warnings():
+        warnings.warn(f"{source}: {text}", FitWarning, stacklevel=3)
 
 
 def reconstruct_many(clouds_mm: Sequence[Any], preset: str = DEFAULT_PRESET, device: str | torch.device = "auto",
@@ -237,8 +253,9 @@ def reconstruct_many(clouds_mm: Sequence[Any], preset: str = DEFAULT_PRESET, dev
         fitted = ubu.fitted_field(trained[k], datas[k], prep[k], results[k].seconds, stages[k],
                                   results[k].history)
         out.append(_finish(fitted, unit, cfg, dev, progress, "ultraboneudf", preset, seed, t_start))
-    for rec in out:  # the batch's wall time, shared by its scans
-        rec.timings["total_s"] = time.perf_counter() - t_start
+    for rec, name in zip(out, names):
+        rec.timings["total_s"] = time.perf_counter() - t_start   # the batch's wall time, shared
+        _warn_fit(rec, name)
     return out
 
 

@@ -158,16 +158,19 @@ class LoopLog:
 
 def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: TrainingData,
                cfg: LossConfig, nn_index: NearestIndex, anchor_rows: torch.Tensor | None = None,
-               explicit: bool = True, warm: bool = False) -> dict[str, torch.Tensor]:
+               explicit: bool = True, warm: bool = False,
+               surface_rows: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """All active loss terms for one batch of queries ``q`` (K, 3) (rows ``batch`` of the store),
     plus ``total``. Pure function of the network's current weights. ``anchor_rows``: the anchors
-    that enter ``L_GS`` (all when ``None``); ``explicit``: the hand-written input gradient
+    that enter ``L_GS`` (all when ``None``); ``surface_rows``: the surface points that enter ``L_OS``
+    and ``L_Eik`` (all when ``None``); ``explicit``: the hand-written input gradient
     (:func:`value_and_grad`) instead of autograd's double backward; ``warm``: the warm-start term
     ``mean |u(q) − d(q)|`` (``d``: ``data.static_distance``, ``loss.distance_target``) replaces the
     main loss."""
     if warm:
         terms = {"warm": (net(q) - data.static_distance[batch]).abs().mean()}
-        return _with_regularisers(net, data, cfg, terms, terms["warm"], None, anchor_rows, explicit)
+        return _with_regularisers(net, data, cfg, terms, terms["warm"], None, anchor_rows, explicit,
+                                  surface_rows)
     u, g = value_and_grad(net, q, create_graph=True, explicit=explicit)
     g_hat = normalize(g)
     moved = q - u[:, None] * g_hat
@@ -188,23 +191,26 @@ def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: Train
         total = terms["cd"]
     else:
         raise ValueError(f"unknown loss kind {cfg.kind!r}")
-    return _with_regularisers(net, data, cfg, terms, total, g, anchor_rows, explicit)
+    return _with_regularisers(net, data, cfg, terms, total, g, anchor_rows, explicit, surface_rows)
 
 
 def _with_regularisers(net: nn.Module, data: TrainingData, cfg: LossConfig, terms: dict[str, torch.Tensor],
                        total: torch.Tensor, g: torch.Tensor | None, anchor_rows: torch.Tensor | None,
-                       explicit: bool) -> dict[str, torch.Tensor]:
+                       explicit: bool, surface_rows: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Add ``L_GS``, ``L_OS`` and ``L_Eik`` (their λ permitting) to ``total``; ``terms`` gets each and
-    ``total``. ``g``: the batch's input gradients, which ``L_Eik`` needs."""
+    ``total``. ``g``: the batch's input gradients, which ``L_Eik`` needs; ``surface_rows``: the
+    surface points ``L_OS`` and ``L_Eik`` see (all when ``None``)."""
     if cfg.lambda_gs and len(data.anchors):
         if anchor_rows is None:
-            terms["gs"] = global_shape_loss(net(data.anchors), data.anchor_targets)
+            terms["gs"] = global_shape_loss(net(data.anchors), data.anchor_targets, cfg.gs_form)
         else:
-            terms["gs"] = global_shape_loss(net(data.anchors[anchor_rows]), data.anchor_targets[anchor_rows])
+            terms["gs"] = global_shape_loss(net(data.anchors[anchor_rows]), data.anchor_targets[anchor_rows],
+                                            cfg.gs_form)
         total = total + cfg.lambda_gs * terms["gs"]
     if cfg.lambda_os or cfg.lambda_eik:
         need_grad = bool(cfg.lambda_eik)
-        p = data.surface.detach().clone().requires_grad_(need_grad)
+        surface = data.surface if surface_rows is None else data.surface[surface_rows]
+        p = surface.detach().clone().requires_grad_(need_grad)
         if need_grad:
             u_p, g_p = value_and_grad(net, p, create_graph=True, explicit=explicit)
         else:
@@ -227,7 +233,8 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     ``train_cfg.step``: ``optimised`` (hand-written input gradient, fused Adam) or ``plain``
     (autograd double backward, PyTorch's default Adam); both compute the same losses and updates.
     ``train_cfg.sampler`` picks the batch draw (:data:`SAMPLERS`); ``loss_cfg.gs_anchors > 0``
-    evaluates ``L_GS`` on that many anchors drawn at random each step instead of all of them;
+    evaluates ``L_GS`` on that many anchors drawn at random each step instead of all of them, and
+    ``loss_cfg.os_rows > 0`` ``L_OS`` and ``L_Eik`` on that many surface points (drawn after them);
     the first ``loss_cfg.warm_start`` (a fraction) of the steps regress ``u`` on the static distance
     to ``P`` instead of the main loss (needs ``data.static_targets``).
 
@@ -247,6 +254,9 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     opt = make_optimizer(net.parameters(), device, fused=explicit)
     n_anchors = len(data.anchors)
     gs_rows = loss_cfg.gs_anchors if 0 < loss_cfg.gs_anchors < n_anchors else 0
+    n_surface = len(data.surface)
+    os_rows = (loss_cfg.os_rows if (loss_cfg.lambda_os or loss_cfg.lambda_eik)
+               and 0 < loss_cfg.os_rows < n_surface else 0)
     iters = train_cfg.iters
     warm_steps = round(loss_cfg.warm_start * iters)
     if (warm_steps > 0 or loss_cfg.lambda_far) and data.static_distance is None:
@@ -268,8 +278,10 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
             opt.zero_grad(set_to_none=True)
             anchor_rows = (torch.randint(0, n_anchors, (gs_rows,), generator=generator, device=device)
                            if gs_rows else None)
+            surface_rows = (torch.randint(0, n_surface, (os_rows,), generator=generator, device=device)
+                            if os_rows else None)
             terms = loss_terms(net, data.queries[batch], batch, data, loss_cfg, nn_index, anchor_rows,
-                               explicit, warm=i < warm_steps)
+                               explicit, warm=i < warm_steps, surface_rows=surface_rows)
             terms["total"].backward()
             opt.step()
             log.step(i, terms)

@@ -9,8 +9,8 @@ seeds it) and loss; the total loss is their sum, so each network's gradient is i
 Adam is element-wise, so one optimiser over the stacked weights is K independent optimisers. Step
 for step the result equals K separate :func:`~ultraboneudf.training.train` runs (tested).
 
-Supported: the tangent loss with ``L_GS``, the warm start and the far-field term (the
-``official``, ``paper`` and ``fast`` presets); networks without skip connections.
+Supported: the tangent loss with ``L_GS``, ``L_OS``, the warm start and the far-field term (the
+``official``, ``paper``, ``fast`` and ``robust`` presets); networks without skip connections.
 """
 
 from __future__ import annotations
@@ -107,9 +107,9 @@ class StackedMLP(nn.Module):
 
 
 def _check(loss_cfg: LossConfig) -> None:
-    if loss_cfg.kind != "tangent" or loss_cfg.lambda_os or loss_cfg.lambda_eik:
-        raise InputError("training several scans at once supports the tangent loss with L_GS, the warm "
-                         "start and the far-field term (no L_OS, L_Eik or other loss kinds)")
+    if loss_cfg.kind != "tangent" or loss_cfg.lambda_eik:
+        raise InputError("training several scans at once supports the tangent loss with L_GS, L_OS, "
+                         "the warm start and the far-field term (no L_Eik or other loss kinds)")
 
 
 def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: LossConfig,
@@ -135,7 +135,10 @@ def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: Los
     warm_steps = round(loss_cfg.warm_start * iters)
     if (warm_steps > 0 or loss_cfg.lambda_far) and any(d.static_distance is None for d in datas):
         raise ValueError("loss.warm_start and loss.lambda_far need the static distances")
-    anchors = _Anchors(datas, loss_cfg.gs_anchors) if loss_cfg.lambda_gs else None
+    anchors = (_Targets([d.anchors for d in datas], [d.anchor_targets for d in datas], loss_cfg.gs_anchors,
+                        loss_cfg.gs_form) if loss_cfg.lambda_gs else None)
+    on_surface = (_Targets([d.surface for d in datas], [torch.zeros(len(d.surface), device=device) for d in datas],
+                           loss_cfg.os_rows) if loss_cfg.lambda_os else None)
     stacked.train()
     threads = train_cfg.threads if device.type == "cpu" else 0
     with cpu_threads(threads), progress.stage("training", iters) as advance:
@@ -145,7 +148,8 @@ def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: Los
                 group["lr"] = learning_rate(i, train_cfg.lr, train_cfg.warmup, iters)
             rows = [s() for s in samplers]
             opt.zero_grad(set_to_none=True)
-            terms = _loss_terms(stacked, datas, rows, indices, anchors, generators, loss_cfg, i < warm_steps)
+            terms = _loss_terms(stacked, datas, rows, indices, anchors, on_surface, generators, loss_cfg,
+                                i < warm_steps)
             terms["total"].sum().backward()
             opt.step()
             log.step(i, terms)
@@ -156,41 +160,53 @@ def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: Los
     return stacked.unstack(nets[0]), results
 
 
-class _Anchors:
-    """Each scan's anchors padded to a common count (with a mask), or drawn ``per_step`` at a time."""
+class _Targets:
+    """Each scan's points with their target values (``L_GS``: anchors and targets; ``L_OS``: the
+    surface and zeros), padded to a common count (with a mask), or drawn ``per_step`` at a time.
+    ``form``: as :func:`~ultraboneudf.losses.global_shape_loss` pairs outputs and targets."""
 
-    def __init__(self, datas: list[TrainingData], per_step: int) -> None:
-        counts = [len(d.anchors) for d in datas]
-        self.counts = counts
+    def __init__(self, points: list[torch.Tensor], targets: list[torch.Tensor], per_step: int,
+                 form: str = "per_anchor") -> None:
+        if form not in ("per_anchor", "broadcast"):
+            raise ValueError(f"unknown L_GS form {form!r}")
+        counts = [len(p) for p in points]
+        self.counts, self.point_list, self.target_list, self.form = counts, points, targets, form
         self.per_step = per_step if 0 < per_step < min(counts) else 0
         if not self.per_step:
             g = max(counts)
-            dev = datas[0].anchors.device
-            self.points = torch.zeros((len(datas), g, 3), device=dev)
-            self.targets = torch.zeros((len(datas), g), device=dev)
-            self.mask = torch.zeros((len(datas), g), device=dev)
-            for k, d in enumerate(datas):
-                self.points[k, :counts[k]] = d.anchors
-                self.targets[k, :counts[k]] = d.anchor_targets
+            dev = points[0].device
+            self.points = torch.zeros((len(points), g, 3), device=dev)
+            self.targets = torch.zeros((len(points), g), device=dev)
+            self.mask = torch.zeros((len(points), g), device=dev)
+            for k, (p, t) in enumerate(zip(points, targets)):
+                self.points[k, :counts[k]] = p
+                self.targets[k, :counts[k]] = t
                 self.mask[k, :counts[k]] = 1.0
 
-    def loss(self, net: StackedMLP, weights: list[torch.Tensor], datas: list[TrainingData],
+    def loss(self, net: StackedMLP, weights: list[torch.Tensor],
              generators: list[torch.Generator]) -> torch.Tensor:
-        """``L_GS`` per scan (K,): the mean squared error over its anchors (§1.6 Eq. 7)."""
+        """Per scan (K,): the mean squared error of ``u`` against the targets (§1.6 Eq. 7, Eq. 9)."""
         if self.per_step:
             # the same draw, from the same generator, as train() makes after its batch draw
-            rows = [torch.randint(0, c, (self.per_step,), generator=g, device=d.anchors.device)
-                    for c, g, d in zip(self.counts, generators, datas)]
-            pts = torch.stack([d.anchors[r] for d, r in zip(datas, rows)])
-            tgt = torch.stack([d.anchor_targets[r] for d, r in zip(datas, rows)])
-            return (net(pts, weights) - tgt).square().mean(dim=1)
-        err = (net(self.points, weights) - self.targets).square() * self.mask
-        return err.sum(dim=1) / self.mask.sum(dim=1)
+            rows = [torch.randint(0, c, (self.per_step,), generator=g, device=p.device)
+                    for c, g, p in zip(self.counts, generators, self.point_list)]
+            pts = torch.stack([p[r] for p, r in zip(self.point_list, rows)])
+            tgt = torch.stack([t[r] for t, r in zip(self.target_list, rows)])
+            mask = torch.ones_like(tgt)
+        else:
+            pts, tgt, mask = self.points, self.targets, self.mask
+        count = mask.sum(dim=1)
+        u = net(pts, weights)
+        if self.form == "per_anchor":
+            return ((u - tgt).square() * mask).sum(dim=1) / count
+        mean_t = (tgt * mask).sum(dim=1) / count
+        var_t = ((tgt - mean_t[:, None]).square() * mask).sum(dim=1) / count
+        return ((u - mean_t[:, None]).square() * mask).sum(dim=1) / count + var_t
 
 
 def _loss_terms(net: StackedMLP, datas: list[TrainingData], rows: list[torch.Tensor],
-                indices: list[NearestIndex], anchors: _Anchors | None, generators: list[torch.Generator],
-                cfg: LossConfig, warm: bool) -> dict[str, torch.Tensor]:
+                indices: list[NearestIndex], anchors: _Targets | None, on_surface: _Targets | None,
+                generators: list[torch.Generator], cfg: LossConfig, warm: bool) -> dict[str, torch.Tensor]:
     """Per-scan loss terms, each (K,), as :func:`~ultraboneudf.training.loss_terms` computes them."""
     weights = net.weights()
     q = torch.stack([d.queries[r] for d, r in zip(datas, rows)])
@@ -213,8 +229,11 @@ def _loss_terms(net: StackedMLP, datas: list[TrainingData], rows: list[torch.Ten
             terms["far"] = ((u - dist).abs() * (dist > cfg.far_threshold)).mean(dim=1)
             total = total + cfg.lambda_far * terms["far"]
     if anchors is not None:
-        terms["gs"] = anchors.loss(net, weights, datas, generators)
+        terms["gs"] = anchors.loss(net, weights, generators)
         total = total + cfg.lambda_gs * terms["gs"]
+    if on_surface is not None:
+        terms["os"] = on_surface.loss(net, weights, generators)
+        total = total + cfg.lambda_os * terms["os"]
     terms["total"] = total
     return terms
 

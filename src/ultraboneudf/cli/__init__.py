@@ -14,7 +14,7 @@ import traceback
 import warnings
 
 from .._version import __version__
-from ..errors import InputError, SweepWarning
+from ..errors import FitWarning, InputError, SweepWarning
 
 COMMANDS = ["reconstruct", "demo", "evaluate", "render", "stats", "sweep2points", "simulate"]
 
@@ -48,7 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
 class _InputWarnings:
     """Collects tolerated input defects (:class:`~ultraboneudf.errors.SweepWarning`) during a
     command and prints them, one line each, when it succeeds; a failed command prints only its
-    one error line."""
+    one error line. :class:`~ultraboneudf.errors.FitWarning` is dropped: the commands print the same
+    sentences with command-line advice."""
 
     def __init__(self, command: str) -> None:
         self.command, self.category, self.lines = command, SweepWarning, []
@@ -57,7 +58,7 @@ class _InputWarnings:
     def show(self, message, category, filename, lineno, file=None, line=None) -> None:
         if issubclass(category, self.category):
             self.lines.append(f"ultraboneudf {self.command}: warning: {message}")
-        else:
+        elif not issubclass(category, FitWarning):
             self.default(message, category, filename, lineno, file, line)
 
     def flush(self) -> None:
@@ -75,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", collected.category)
+            warnings.simplefilter("always", FitWarning)
             warnings.showwarning = collected.show
             code = int(args.func(args) or 0)
         collected.flush()

@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"demo: Chamfer distance to the known truth {result.cd_mm:.3f} mm, HD95 {result.hd95_mm:.3f} mm "
           f"({rec.counts['faces']} faces, {t['total_s']:.1f} s on {rec.device}: preprocess "
           f"{t['preprocess_s']:.1f} s, train {t['train_s']:.1f} s, extract {t['extract_s']:.1f} s)")
-    for warning in rec.fit_warnings():
+    for warning in rec.fit_warnings(cli=True):
         print(f"demo: warning: {warning}")
     print(f"demo: wrote {out}/demo_mesh.ply, demo_mesh.json, demo_eval.json, {picture.name}")
     return 0

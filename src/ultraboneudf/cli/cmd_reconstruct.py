@@ -108,6 +108,6 @@ def run(args: argparse.Namespace) -> int:
     progress.log(f"wrote {output} ({rec.counts['vertices']} vertices, {rec.counts['faces']} faces) and "
                  f"{sidecar}; {t['total_s']:.1f} s (preprocess {t['preprocess_s']:.1f}, "
                  f"train {t['train_s']:.1f}, extract {t['extract_s']:.1f}) on {rec.device}")
-    for warning in rec.fit_warnings():  # shown even with --quiet: they concern the result
+    for warning in rec.fit_warnings(cli=True):  # shown even with --quiet: they concern the result
         print(f"ultraboneudf reconstruct: warning: {warning}", file=sys.stderr)
     return 0

@@ -38,6 +38,7 @@ def configure(cfg: Config, preset: str) -> None:
     cfg.model.abs_output = True
     cfg.loss.kind = "capudf"
     cfg.loss.lambda_gs = 0.0
+    cfg.loss.lambda_os = 0.0
     cfg.data.queries = "capudf"
     cfg.data.anchors = "none"
     cfg.data.grid_queries = 0

@@ -31,10 +31,11 @@ from .ultraboneudf import build_network, prepare
 
 
 def _pull_only(cfg: Config) -> None:
-    """``L_pull`` (Eq. 3, squared) alone: no L_GS, no anchors (§5.3, §5.5)."""
+    """``L_pull`` (Eq. 3, squared) alone: no L_GS, no L_OS, no anchors (§5.3, §5.5)."""
     cfg.loss.kind = "pull"
     cfg.loss.pull_norm = "squared"
     cfg.loss.lambda_gs = 0.0
+    cfg.loss.lambda_os = 0.0
     cfg.data.anchors = "none"
 
 

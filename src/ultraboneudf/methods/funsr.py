@@ -64,6 +64,7 @@ def configure(cfg: Config, preset: str) -> None:
     cfg.loss.kind = "pull"
     cfg.loss.pull_norm = "unsquared"
     cfg.loss.lambda_gs = 0.0
+    cfg.loss.lambda_os = 0.0
     cfg.loss.lambda_scc = 0.005
     cfg.loss.lambda_adl = 0.005
     cfg.train.disc_lr = 1e-3
