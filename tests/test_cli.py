@@ -135,3 +135,19 @@ def test_the_command_line_lists_every_registered_method():
     from ultraboneudf.methods import METHODS, NAMES
 
     assert tuple(METHODS) == NAMES
+
+
+def test_info_reports_versions_devices_extras_and_data():
+    res = run_cli("info", "--json")
+    assert res.returncode == 0, res.stderr
+    info = json.loads(res.stdout)
+    import torch
+
+    import ultraboneudf
+    assert info["ultraboneudf"] == ultraboneudf.__version__
+    assert info["packages"]["torch"] == torch.__version__
+    assert info["cuda_available"] == torch.cuda.is_available()
+    assert set(info["extras"]) == {"pymeshlab", "open3d", "onnxruntime"}
+    assert set(info["shared_data"]) == {"bones", "ultrabones100k_sample", "plus"}
+    text = run_cli("info")
+    assert text.returncode == 0 and "CUDA available" in text.stdout

@@ -73,7 +73,7 @@ def test_rows_to_mask():
     np.testing.assert_array_equal(np.argwhere(m), [[0, 2], [1, 2], [2, 1], [3, 1]])
 
 
-@pytest.mark.skipif(not SAMPLE.is_dir(), reason="shared sample data not present")
+@pytest.mark.skipif(not SAMPLE.is_dir(), reason=f"{SAMPLE} not present")
 def test_real_frame_bone_echo_found():
     # 190910.png: the fibula's echo arcs over columns ~580-880 at rows ~210-290 (looked at)
     rows = BoneDetector().surface_rows(read_image(SAMPLE / "frames" / "190910.png"), 0.05392)
@@ -83,7 +83,7 @@ def test_real_frame_bone_echo_found():
     assert not np.isfinite(rows[:450]).any()   # tissue and fascia on the left: nothing
 
 
-@pytest.mark.skipif(not SAMPLE.is_dir(), reason="shared sample data not present")
+@pytest.mark.skipif(not SAMPLE.is_dir(), reason=f"{SAMPLE} not present")
 def test_real_frames_skin_line_never_detected():
     det = BoneDetector()
     files = sorted((SAMPLE / "frames").glob("*.png"))[::3] + sorted((SAMPLE / "examples").glob("*.png"))[::2]

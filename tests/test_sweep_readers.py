@@ -211,7 +211,7 @@ def test_reading_never_modifies_input(tmp_path):
     assert before == after
 
 
-@pytest.mark.skipif(not SAMPLE.is_dir(), reason="shared sample data not present")
+@pytest.mark.skipif(not SAMPLE.is_dir(), reason=f"{SAMPLE} not present")
 def test_real_sample_chain_matches_readme():
     from scipy.spatial.transform import Rotation
 
@@ -236,7 +236,7 @@ def test_real_sample_chain_matches_readme():
     np.testing.assert_allclose(got, expected, atol=1e-9)
 
 
-@pytest.mark.skipif(not SAMPLE.is_dir(), reason="shared sample data not present")
+@pytest.mark.skipif(not SAMPLE.is_dir(), reason=f"{SAMPLE} not present")
 def test_real_sample_round_trips_through_every_format(tmp_path):
     s = read_sweep(SAMPLE).subset([0, 7, 29])
     with warnings.catch_warnings():

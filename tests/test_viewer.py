@@ -73,3 +73,21 @@ def test_viewer_draws_in_a_headless_browser_offline(tmp_path):
     assert coloured > 0.05  # not blank
     bluish = ((img[..., 2] - img[..., 0]) > 60).mean()
     assert bluish > 0.03  # distance colours (0.5 mm → blue) are on screen
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (.ci/run installs Debian's)")
+@pytest.mark.parametrize("window", ["1280,800", "600,900"])
+def test_first_view_frames_a_long_bone_whole(tmp_path, window):
+    """A 400 mm × 40 mm shaft, long axis vertical, is on screen end to end in a landscape and a
+    portrait window, not cut off at the top and bottom."""
+    shaft = trimesh.creation.cylinder(radius=20.0, height=400.0, sections=32)
+    page = tmp_path / "shaft.html"
+    write_viewer(page, shaft)
+    shot = tmp_path / "shaft.png"
+    _chromium(tmp_path, f"--screenshot={shot}", f"--window-size={window}", page.as_uri())
+    img = np.asarray(Image.open(shot).convert("RGB")).astype(int)
+    drawn = np.abs(img - 255).sum(-1) > 60
+    h, centre = drawn.shape[0], drawn.shape[1] // 2   # the shaft's column, beside the panel
+    rows = np.flatnonzero(drawn[: h - 20, centre - 4: centre + 5].any(axis=1))   # above the status line
+    assert rows.size and rows[0] > 0.02 * h and rows[-1] < h - 30, (rows[:1], rows[-1:], h)
+    assert rows[-1] - rows[0] > 0.5 * h   # and not lost in the distance

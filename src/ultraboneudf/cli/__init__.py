@@ -16,7 +16,7 @@ import warnings
 from .._version import __version__
 from ..errors import FitWarning, InputError, SweepWarning
 
-COMMANDS = ["reconstruct", "demo", "evaluate", "render", "stats", "sweep2points", "simulate"]
+COMMANDS = ["reconstruct", "demo", "evaluate", "render", "stats", "sweep2points", "simulate", "info"]
 
 
 class _Parser(argparse.ArgumentParser):

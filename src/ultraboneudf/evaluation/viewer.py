@@ -292,8 +292,15 @@ _SCRIPT = r"""
   const up = [0, 0, 0]; up[meta.up] = 1;
   const fwd = [0, 0, 0]; fwd[(meta.up + 1) % 3] = 1;
   const side = [up[1] * fwd[2] - up[2] * fwd[1], up[2] * fwd[0] - up[0] * fwd[2], up[0] * fwd[1] - up[1] * fwd[0]];
-  const home = { az: 0.6, el: 0.25, dist: 3.2 * meta.radius, target: [0, 0, 0] };
-  let cam = JSON.parse(JSON.stringify(home));
+  // The first view (and a double click) frames the bounding sphere in the narrower of the two
+  // fields of view (30° vertical), with a 10% margin.
+  function fitDistance() {
+    const aspect = Math.max(1e-3, (canvas.clientWidth || 1) / (canvas.clientHeight || 1));
+    const half = Math.atan(Math.tan(15 * Math.PI / 180) * Math.min(1, aspect));
+    return 1.1 * meta.radius / Math.sin(half);
+  }
+  function homeView() { return { az: 0.6, el: 0.25, dist: fitDistance(), target: [0, 0, 0] }; }
+  let cam = homeView();
   const sub = (a, b) => [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
   const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
   const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
@@ -394,7 +401,7 @@ _SCRIPT = r"""
     cam.dist = Math.max(0.05 * meta.radius, Math.min(20 * meta.radius, cam.dist * Math.exp(e.deltaY * 0.001)));
     redraw();
   }, { passive: false });
-  canvas.addEventListener("dblclick", () => { cam = JSON.parse(JSON.stringify(home)); redraw(); });
+  canvas.addEventListener("dblclick", () => { cam = homeView(); redraw(); });
   for (const el of [ui.recon, ui.gt, ui.points]) el.addEventListener("change", redraw);
   ui.vmax.addEventListener("input", () => { updateLegend(); redraw(); });
   window.addEventListener("resize", redraw);
