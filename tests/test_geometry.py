@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 import torch
 
 from ultraboneudf.config import preset
@@ -30,6 +31,23 @@ def test_fps_greedy_order_and_prefix_property():
     cloud = np.random.default_rng(2).random((3000, 3))
     big = farthest_point_sampling(cloud, 300)
     np.testing.assert_array_equal(farthest_point_sampling(cloud, 100), big[:100])
+
+
+@pytest.mark.parametrize("leaf", [7, 64, 512])
+def test_bucketed_fps_is_the_plain_greedy_result(leaf):
+    """Pruning by blocks changes no choice: same indices, ties (duplicates, a coarse z grid) to
+    the lowest index, a start other than 0, a block count that leaves padding."""
+    from ultraboneudf.geometry.fps import _fps_bucketed, _fps_numpy
+
+    rng = np.random.default_rng(5)
+    cloud = rng.normal(size=(5_003, 3))
+    cloud[:500] = cloud[500:1000]            # exact duplicates
+    cloud[:, 2] = np.round(cloud[:, 2], 1)   # many equal coordinates
+    np.testing.assert_array_equal(_fps_bucketed(cloud, 700, 0, leaf), _fps_numpy(cloud, 700, 0))
+    np.testing.assert_array_equal(_fps_bucketed(cloud, 300, 4_321, leaf), _fps_numpy(cloud, 300, 4_321))
+    patch = np.c_[rng.random((4_000, 2)), np.zeros(4_000)]   # a flat surface: every z equal
+    np.testing.assert_array_equal(_fps_bucketed(patch, 400, 0, leaf), _fps_numpy(patch, 400, 0))
+    assert np.array_equal(_fps_bucketed(cloud[:10], 10, 0, leaf), _fps_numpy(cloud[:10], 10, 0))
 
 
 def test_official_subset_rule():
