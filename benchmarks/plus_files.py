@@ -86,7 +86,7 @@ def figure(sweep_path: Path, cal: Path | None, mesh_path: Path, out: Path, crop=
     frames = np.linspace(0, sweep.n_frames - 1, 6).round().astype(int)
     sheet = frames_with_mesh(sweep, masks, mesh, frames, columns=3, tile_width=300, crop=crop)
     render = render_distance_image(mesh, points, views=("front", "right", "top"), tile_height=260, vmax=3.0,
-                                   title=f"{sweep_path.name}: mesh coloured by distance to the points")
+                                   title=f"{sweep_path.name}: mesh, distance to the points")
     scale = sheet.width / render.width
     render = render.resize((sheet.width, round(render.height * scale)), Image.BILINEAR)
     canvas = Image.new("RGB", (sheet.width, render.height + sheet.height), (0, 0, 0))
