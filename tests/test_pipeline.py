@@ -209,3 +209,17 @@ def test_robust_preset_keeps_a_noisy_gappy_sweep_with_false_echoes_in_one_layer(
     assert res.cd_mm < 0.3 and res.hd95_mm < 1.5, res
     assert 0.9 < rec.mesh.area / patch_mesh().area < 1.1
     assert rec.quality["nonmanifold_edges"] == 0
+
+
+def test_max_voxels_coarsens_the_voxel_until_the_cloud_fits():
+    """40,000 points on the patch, at most 3,000 voxels: a coarser voxel is used, recorded in the
+    sidecar counts, and the mesh still lies on the patch."""
+    pts = patch_points(40_000, seed=4)
+    rec = ultraboneudf.reconstruct(pts, preset="robust", device="cpu", seed=3,
+                                   **{**SMALL, "data.max_voxels": 3_000})
+    assert rec.counts["voxelized_points"] <= 3_000 < len(pts)
+    assert rec.counts["voxel_size_mm"] > 0.1
+    radial = np.abs(np.hypot(rec.mesh.vertices[:, 0], rec.mesh.vertices[:, 2]) - RADIUS)
+    assert np.median(radial) < 0.5
+    plain = ultraboneudf.reconstruct(pts[:2_000], preset="fast", device="cpu", seed=3, **SMALL)
+    assert plain.counts["voxel_size_mm"] == 0.1   # no limit: the voxel as configured

@@ -26,6 +26,10 @@ class DataConfig:
 
     voxel_size_mm: float = 0.1
     """Edge of the down-sampling voxel in mm (voxel mean, §1.2 step 2); 0 disables it."""
+    max_voxels: int = 0
+    """At most this many points after the voxel mean: a larger result is voxelised again with a
+    coarser voxel (the edge used is ``counts.voxel_size_mm``), so the local-plane stage's cost is
+    bounded on clouds of millions of points; 0 = no limit (the reference)."""
     subset: str = "official"
     """Surface subset rule: ``official`` (FPS 5k ∪ FPS 15k when above ``subset_threshold`` points,
     else all), ``fps`` (FPS to ``max_points`` distinct points, all if fewer), ``all``."""
@@ -398,6 +402,7 @@ def _robust() -> Config:
     leaves the field above zero there. Leaves are kept ≥ 0.75 mm, so a small bone is not meshed
     finer than its data resolve (docs/robustness.md measures each part)."""
     cfg = _fast()
+    cfg.data.max_voxels = 200_000
     cfg.data.surface_fit_mm = 4.0
     cfg.data.denoise = 1
     cfg.data.outlier_sigmas = 3.0
@@ -550,6 +555,7 @@ def validate(cfg: Config, trains: bool = True) -> Config:
         value = getattr(getattr(cfg, section), name)
         need(math.isfinite(value) and value >= 0, key, "finite and 0 or more")
     need(d.denoise >= 0, "data.denoise", "0 or more passes")
+    need(d.max_voxels >= 0, "data.max_voxels", "0 (no limit) or more")
     need(lo.gs_anchors >= 0, "loss.gs_anchors", "0 (all) or more")
     need(lo.os_rows >= 0, "loss.os_rows", "0 (all) or more")
     need(lo.gs_form in GS_FORMS, "loss.gs_form", " or ".join(GS_FORMS))

@@ -269,6 +269,7 @@ class _UnitCloud:
     normalizer: Normalizer
     input_points: int
     outliers: int               # points the local-plane stage dropped
+    voxel_mm: float             # the voxel edge used (data.voxel_size_mm, or coarser: data.max_voxels)
     voxel_s: float
     surface_fit_s: float
 
@@ -295,11 +296,12 @@ def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: in
     n_input = len(points)
     if d.noise_sigma_mm > 0:
         points = points + np.random.default_rng(seed + 1).normal(0.0, d.noise_sigma_mm, points.shape)
-    voxel_probe = None
-    if probe is None:
-        voxelised = voxel_downsample(points, d.voxel_size_mm)
-    else:  # each voxel's probe position: the mean of those of its points
-        voxelised, voxel_probe = voxel_downsample_with(points, probe, d.voxel_size_mm)
+    voxel = d.voxel_size_mm
+    voxelised, voxel_probe = _voxel_mean(points, probe, voxel)
+    while d.max_voxels and len(voxelised) > d.max_voxels and voxel > 0:
+        # a surface's voxel count falls with the square of the edge; 1.2× at least, so it converges
+        voxel *= max(1.2, float(np.sqrt(len(voxelised) / d.max_voxels)))
+        voxelised, voxel_probe = _voxel_mean(points, probe, voxel)
     t1 = time.perf_counter()
     planes, outliers = None, 0
     if d.surface_fit_mm > 0:
@@ -311,8 +313,16 @@ def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: in
     return _UnitCloud(points=normalizer.forward(voxelised),
                       probe=None if voxel_probe is None else normalizer.forward(voxel_probe),
                       planes=None if planes is None else planes.scaled(1.0 / normalizer.scale),
-                      normalizer=normalizer, input_points=n_input, outliers=outliers,
+                      normalizer=normalizer, input_points=n_input, outliers=outliers, voxel_mm=voxel,
                       voxel_s=t1 - t0, surface_fit_s=time.perf_counter() - t1)
+
+
+def _voxel_mean(points: np.ndarray, probe: np.ndarray | None, voxel: float
+                ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Voxel mean of the points (mm); each voxel's probe position is the mean of its points'."""
+    if probe is None:
+        return voxel_downsample(points, voxel), None
+    return voxel_downsample_with(points, probe, voxel)
 
 
 def _local_plane_stage(points: np.ndarray, probe: np.ndarray | None, d: DataConfig, source: str
@@ -378,6 +388,7 @@ def _finish(fitted: Fitted, unit: _UnitCloud, cfg: Config, dev: torch.device, pr
     }
     timings["total_s"] = time.perf_counter() - t_start
     counts = {"input_points": unit.input_points, "voxelized_points": len(unit.points) + unit.outliers,
+              "voxel_size_mm": unit.voxel_mm,
               "outliers_removed": unit.outliers, "extract_depth": extract_cfg.max_depth, **fitted.counts,
               "vertices": 0 if mesh is None else len(mesh.vertices),
               "faces": 0 if mesh is None else len(mesh.faces), "trimmed_faces": trimmed}
