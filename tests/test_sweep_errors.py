@@ -156,3 +156,26 @@ def test_metaio_write_then_corrupt_compressed(tmp_path, capsys):
     p = metaio.write(s, tmp_path / "z.mhd", compress=True)
     p.with_suffix(".zraw").write_bytes(b"garbage")
     expect_error(p, "z.zraw", "corrupt compressed", capsys, tmp_path)
+
+
+def test_metaio_pixel_block_beyond_the_limit_is_refused_before_reading(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(metaio, "MAX_PIXEL_BYTES", 100)
+    p = _mha(tmp_path / "e.mha", [np.diag([0.1, 0.1, 1.0, 1.0])] * 3, frames=3, w=8, h=5)   # 120 bytes
+    expect_error(p, "e.mha", "declares .* GiB of pixels .* ULTRABONEUDF_MAX_PIXEL_BYTES", capsys, tmp_path)
+
+
+def test_metaio_zlib_bomb_is_not_inflated_beyond_the_header(tmp_path, capsys):
+    """1 MB of zeros compresses to ~1 kB; a header that declares 24 bytes gets an error, and the
+    reader never holds more than 25 inflated bytes."""
+    import zlib
+
+    p = _mha(tmp_path / "z.mha", [np.diag([0.1, 0.1, 1.0, 1.0])] * 2, frames=2)
+    head = p.read_bytes()[:-24].replace(b"ElementDataFile", b"CompressedData = True\nElementDataFile")
+    p.write_bytes(head + zlib.compress(bytes(1 << 20)))
+    expect_error(p, "z.mha", "more pixel data than DimSize", capsys, tmp_path)
+
+
+def test_metaio_more_pixels_than_dimsize_is_an_error(tmp_path, capsys):
+    p = _mha(tmp_path / "f.mha", [np.diag([0.1, 0.1, 1.0, 1.0])] * 2, frames=2)
+    p.write_bytes(p.read_bytes() + bytes(12))    # half a frame more than DimSize says
+    expect_error(p, "f.mha", "more pixel data than DimSize", capsys, tmp_path)

@@ -37,6 +37,9 @@ MET_TYPES = {
 }
 _FRAME_KEY = re.compile(r"^Seq_Frame(\d+)_(.+)$")
 MAX_HEADER_BYTES = 64 << 20
+MAX_PIXEL_BYTES = int(os.environ.get("ULTRABONEUDF_MAX_PIXEL_BYTES", 16 << 30))
+"""Largest pixel block a header may declare (bytes; environment ``ULTRABONEUDF_MAX_PIXEL_BYTES``):
+a larger one is refused before anything is allocated or inflated."""
 
 
 def detect(path: Path) -> bool:
@@ -98,6 +101,11 @@ def _read_pixels(path: Path, fields: dict[str, str], data_offset: int,
         raise InputError(f"{path}: ElementDataFile = {target} (file lists) is not supported")
     else:
         data_path, offset = path.parent / target, int(fields.get("HeaderSize", 0) or 0)
+    expected = int(np.prod(shape)) * channels * dtype.itemsize
+    if expected > MAX_PIXEL_BYTES:
+        raise InputError(f"{path}: the header declares {expected / 2**30:.1f} GiB of pixels ({shape[0]} "
+                         f"frames of {shape[2]}x{shape[1]} px), above the limit of "
+                         f"{MAX_PIXEL_BYTES / 2**30:.1f} GiB (set ULTRABONEUDF_MAX_PIXEL_BYTES to raise it)")
     try:
         with open(data_path, "rb") as fh:
             fh.seek(offset)
@@ -106,10 +114,14 @@ def _read_pixels(path: Path, fields: dict[str, str], data_offset: int,
         raise InputError(f"{data_path}: cannot read the pixel data ({exc.strerror})") from None
     if _bool(fields.get("CompressedData")):
         try:
-            blob = zlib.decompress(blob)
+            # inflate no more than the header declares (+1 byte to see a surplus): a small file
+            # cannot expand into gigabytes before it is found to be wrong
+            blob = zlib.decompressobj().decompress(blob, expected + 1)
         except zlib.error as exc:
             raise InputError(f"{data_path}: corrupt compressed pixel data ({exc})") from None
-    expected = int(np.prod(shape)) * channels * dtype.itemsize
+    if len(blob) > expected:
+        raise InputError(f"{data_path}: more pixel data than DimSize {shape[2]} {shape[1]} {shape[0]} "
+                         f"declares (a wrong DimSize or ElementType?)")
     if len(blob) < expected:
         raise InputError(f"{data_path}: pixel data has {len(blob)} bytes, {expected} expected for "
                          f"{shape[0]} frames of {shape[2]}x{shape[1]} px (truncated file?)")
