@@ -11,9 +11,8 @@ line's ``--help``) does not load PyTorch.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
 
+from ._lazy import lazy_getattr
 from ._version import __version__
 
 _WHERE = {
@@ -26,12 +25,7 @@ _WHERE = {
 __all__ = ["__version__", *_WHERE]
 
 
-def __getattr__(name: str) -> Any:
-    if name in _WHERE:
-        value = getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, _WHERE, globals())
 
 
 def __dir__() -> list[str]:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .config import LossConfig, TrainConfig
+from .config import GS_FORMS, LossConfig, TrainConfig
 from .errors import InputError
 from .fields.base import normalize
 from .fields.mlp import DistanceMLP
@@ -167,7 +167,7 @@ class _Targets:
 
     def __init__(self, points: list[torch.Tensor], targets: list[torch.Tensor], per_step: int,
                  form: str = "per_anchor") -> None:
-        if form not in ("per_anchor", "broadcast"):
+        if form not in GS_FORMS:
             raise ValueError(f"unknown L_GS form {form!r}")
         counts = [len(p) for p in points]
         self.counts, self.point_list, self.target_list, self.form = counts, points, targets, form

@@ -192,13 +192,12 @@ def _quadric_height(d: np.ndarray, weight: np.ndarray, vecs: np.ndarray, own: np
     ``vecs`` (C, 3, 3) (columns: normal, then the two in-plane axes). A plane flattens a curved bone
     by about ``(radius/2)²/(2·R)``; the quadric follows the curvature, so moving a point onto it
     removes noise without that bias."""
-    def design(x: np.ndarray) -> np.ndarray:
-        s = np.einsum("...i,...i->...", x, vecs_t1)
-        t = np.einsum("...i,...i->...", x, vecs_t2)
+    def design(x: np.ndarray, axis_s: np.ndarray, axis_t: np.ndarray) -> np.ndarray:
+        s = np.einsum("...i,...i->...", x, axis_s)
+        t = np.einsum("...i,...i->...", x, axis_t)
         return np.stack([s * s, s * t, t * t, s, t, np.ones_like(s)], axis=-1)
 
-    vecs_t1, vecs_t2 = vecs[:, None, :, 2], vecs[:, None, :, 1]
-    a = design(d)                                                       # (C, k, 6)
+    a = design(d, vecs[:, None, :, 2], vecs[:, None, :, 1])             # (C, k, 6)
     h = np.einsum("cki,ci->ck", d, vecs[:, :, 0])
     ata = np.einsum("ck,cki,ckj->cij", weight, a, a)
     atb = np.einsum("ck,cki,ck->ci", weight, a, h)
@@ -206,8 +205,7 @@ def _quadric_height(d: np.ndarray, weight: np.ndarray, vecs: np.ndarray, own: np
     diag = np.einsum("cii->ci", ata)
     ridge = np.where(np.arange(6) < 3, 1e-3, 1e-9) * np.maximum(diag.max(axis=1, keepdims=True), 1e-300)
     coef = np.linalg.solve(ata + ridge[:, :, None] * np.eye(6), atb[..., None])[..., 0]
-    vecs_t1, vecs_t2 = vecs[:, :, 2], vecs[:, :, 1]
-    return np.einsum("ci,ci->c", design(own), coef)
+    return np.einsum("ci,ci->c", design(own, vecs[:, :, 2], vecs[:, :, 1]), coef)
 
 
 def shadowed(points: np.ndarray, view: np.ndarray, margin: float, depth: float = 10.0,

@@ -4,8 +4,7 @@ imported on first use (the command line's help needs the parameters, not trimesh
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from .._lazy import lazy_getattr
 
 _WHERE = {"Phantom": "phantom", "bone_phantom": "phantom", "facing_surface": "phantom",
           "sample_surface": "phantom"}
@@ -13,9 +12,4 @@ _WHERE = {"Phantom": "phantom", "bone_phantom": "phantom", "facing_surface": "ph
 __all__ = list(_WHERE)
 
 
-def __getattr__(name: str) -> Any:
-    if name in _WHERE:
-        value = getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, _WHERE, globals())
