@@ -1,4 +1,4 @@
-"""Speed and memory of one evaluation (ALGORITHMS.md §6.2) at the reference code's 5,000,000
+"""Speed and memory of one evaluation (docs/ALGORITHMS.md §6.2) at the reference code's 5,000,000
 samples per surface, and the example picture of docs/evaluation.md.
 
     .venv/bin/python benchmarks/bench_evaluate.py                       # 5e6 × 5e6 on the CPU

@@ -30,7 +30,7 @@ import trimesh
 
 from ultraboneudf.sweep import BoneDetector, read_sweep, sweep_to_points
 from ultraboneudf.sweep.bone import classical_bone_masks
-from ultraboneudf.sweep.figures import contact_sheet, overlay, render_points, save_png
+from ultraboneudf.sweep.figures import contact_sheet, mark_dilation, overlay, render_points, save_png
 from ultraboneudf.sweep.readers.images import read_image
 from ultraboneudf.synth.simulator import SimulationConfig, simulate_sweep
 from ultraboneudf.synth.truth import mask_precision_recall, point_to_mesh_distance, surface_coverage
@@ -68,7 +68,7 @@ def bench_bone(path: Path, detector: BoneDetector, figures: Path | None) -> dict
            "predicted_masks": {"precision": p_pred, "recall": r_pred, **score_points(cp_pred.points, sim)}}
     if figures is not None:
         idx = np.linspace(0, sim.sweep.n_frames - 1, 7).astype(int)[1:-1][::2][:3]
-        row["_tiles"] = [overlay(sim.sweep.images[i], det_masks[i], truth=sim.true_masks[i], dilate=0)
+        row["_tiles"] = [overlay(sim.sweep.images[i], det_masks[i], truth=sim.true_masks[i], dilate=mark_dilation(sim.sweep.width, 256))
                          for i in idx]
         row["_tile_labels"] = [f"{path.stem} frame {i}" for i in idx]
         save_png(render_points(cp_det.points, cp_det.frame_index, width=900, panel_height=200,
@@ -80,14 +80,15 @@ def bench_bone(path: Path, detector: BoneDetector, figures: Path | None) -> dict
 def real_figures(sample: Path, detector: BoneDetector, figures: Path) -> dict:
     sweep = read_sweep(sample)
     masks, _ = classical_bone_masks(sweep, detector)
-    tiles = [overlay(sweep.images[i], masks[i], dilate=3) for i in range(sweep.n_frames)]
+    tiles = [overlay(sweep.images[i], masks[i], dilate=mark_dilation(sweep.width, 240))
+             for i in range(sweep.n_frames)]
     save_png(contact_sheet(tiles, [f"{n}" for n in sweep.frame_names], columns=6, tile_width=240),
              figures / "sweep_real_overlays.jpg")
     ex_files = sorted((sample / "examples").glob("*.png"))
     ex_tiles = []
     for f in ex_files:
         img = read_image(f)
-        ex_tiles.append(overlay(img, detector.segment(img, 0.05392), dilate=3))
+        ex_tiles.append(overlay(img, detector.segment(img, 0.05392), dilate=mark_dilation(img.shape[1], 300)))
     save_png(contact_sheet(ex_tiles, [f.name for f in ex_files], columns=5, tile_width=300),
              figures / "sweep_examples_overlays.jpg")
     cp = sweep_to_points(sweep, masks=masks, segment="masks")

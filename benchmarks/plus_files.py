@@ -53,7 +53,7 @@ def overlay_sheet(sweep_path: Path, cal: Path, out: Path, n: int = 8, crop=None)
     """``n`` frames with the classical detector's bone surface in red (the docs' overlay picture)."""
     from ultraboneudf.sweep import read_sweep
     from ultraboneudf.sweep.bone import classical_bone_masks
-    from ultraboneudf.sweep.figures import contact_sheet, overlay, save_png
+    from ultraboneudf.sweep.figures import contact_sheet, mark_dilation, overlay, save_png
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -62,7 +62,7 @@ def overlay_sheet(sweep_path: Path, cal: Path, out: Path, n: int = 8, crop=None)
     frames = np.linspace(0, sweep.n_frames - 1, n).round().astype(int)
     tiles = []
     for i in frames:
-        im = overlay(sweep.images[i], masks[i], dilate=2)
+        im = overlay(sweep.images[i], masks[i], dilate=mark_dilation(crop[2] if crop else sweep.width, 225))
         tiles.append(im.crop((crop[0], crop[1], crop[0] + crop[2], crop[1] + crop[3])) if crop else im)
     save_png(contact_sheet(tiles, [sweep.frame_names[i] for i in frames], columns=4, tile_width=225),
              out, greys=64)

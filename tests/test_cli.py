@@ -107,7 +107,7 @@ def test_usage_error_exit_2():
     (["--set", "extract.trim_mm=-1"], "extract.trim_mm=-1.0 (finite and 0 or more)"),
     (["--set", "train.lr=1e30"], "train.lr=1e+30 (a learning rate in (0, 1])"),
     (["--set", "loss.os_rows=-5"], "loss.os_rows=-5 (0 (all) or more)"),
-    (["--set", "loss.gs_form=pairs"], "loss.gs_form='pairs' (per_anchor or broadcast)"),
+    (["--set", "loss.gs_form=pairs"], "unknown loss.gs_form 'pairs'; choose one of per_anchor, broadcast"),
 ])
 def test_out_of_range_options_are_one_line_exit_2(tmp_path, extra, message):
     src = _cloud(tmp_path / "in.xyz")

@@ -1,8 +1,10 @@
 import json
+from dataclasses import fields
 
+import numpy as np
 import pytest
 
-from ultraboneudf.config import Config, apply_overrides, preset
+from ultraboneudf.config import Config, DataConfig, apply_overrides, choices, preset, validate
 from ultraboneudf.errors import InputError
 
 
@@ -41,3 +43,72 @@ def test_config_json_round_trip():
 def test_unknown_preset():
     with pytest.raises(InputError, match="unknown preset"):
         preset("turbo")
+
+
+def _every_field():
+    cfg = Config()
+    return [(section.name, f.name) for section in fields(cfg)
+            for f in fields(getattr(cfg, section.name))]
+
+
+def _bad_value(section, name):
+    """A value of the wrong type (or an unknown mode) for the field, as typed after --set."""
+    obj = getattr(Config(), section)
+    if choices(obj, name):
+        return "bogus"
+    current = getattr(obj, name)
+    if isinstance(current, bool):
+        return "maybe"
+    if isinstance(current, int):
+        return "1.5"
+    if isinstance(current, float):
+        return "abc"
+    if isinstance(current, tuple):
+        return "a,b"
+    raise AssertionError(f"{section}.{name}: a field that is neither a mode nor a number, flag or list")
+
+
+def test_every_string_field_is_a_validated_mode():
+    for section, name in _every_field():
+        if isinstance(getattr(getattr(Config(), section), name), str):
+            assert choices(getattr(Config(), section), name), f"{section}.{name} is a free string"
+
+
+@pytest.mark.parametrize("key", [f"{s}.{n}" for s, n in _every_field()])
+def test_bad_set_on_every_field_exits_2_with_one_line(key, tmp_path, capsys):
+    from ultraboneudf.cli import main
+
+    cloud = tmp_path / "in.xyz"
+    np.savetxt(cloud, np.random.default_rng(0).normal(size=(50, 3)) * 10)
+    bad = _bad_value(*key.split("."))
+    assert main(["reconstruct", str(cloud), "-o", str(tmp_path / "out.ply"), "--quiet",
+                 "--set", f"{key}={bad}"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and key in err
+    allowed = choices(getattr(Config(), key.split(".")[0]), key.split(".")[1])
+    if allowed:
+        assert ", ".join(allowed) in err
+    assert not (tmp_path / "out.ply").exists()
+
+
+def test_unknown_key_exits_2(tmp_path, capsys):
+    from ultraboneudf.cli import main
+
+    cloud = tmp_path / "in.xyz"
+    np.savetxt(cloud, np.random.default_rng(0).normal(size=(50, 3)) * 10)
+    for item in ("train.nope=1", "nope.iters=1", "nope=1"):
+        assert main(["reconstruct", str(cloud), "-o", str(tmp_path / "o.ply"), "--set", item]) == 2
+        assert "nope" in capsys.readouterr().err
+
+
+def test_modes_checked_on_construction_and_before_a_run():
+    with pytest.raises(InputError, match="data.subset 'bogus'; choose one of official, fps, all"):
+        DataConfig(subset="bogus")
+    cfg = preset("fast")
+    cfg.extract.mode = "marching"  # assigned after construction: validate() catches it
+    with pytest.raises(InputError, match="extract.mode 'marching'"):
+        validate(cfg)
+    cfg = preset("fast")
+    cfg.loss.lambda_gs = float("nan")
+    with pytest.raises(InputError, match="loss.lambda_gs=nan"):
+        validate(cfg)

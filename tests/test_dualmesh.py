@@ -1,4 +1,4 @@
-"""DualMesh-UDF, faithful mode (ALGORITHMS.md §2, Appendix C), on exact analytic UDFs."""
+"""DualMesh-UDF, faithful mode (docs/ALGORITHMS.md §2, Appendix C), on exact analytic UDFs."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Metrics of ALGORITHMS.md §6.2 on analytic geometry whose answers are known in closed form."""
+"""Metrics of docs/ALGORITHMS.md §6.2 on analytic geometry whose answers are known in closed form."""
 
 from __future__ import annotations
 

@@ -149,7 +149,7 @@ def test_poisson_orientation_choice_and_sidecar(stub_solver, choice, with_probe,
 
 def test_poisson_orientation_errors():
     p, _, probe, _ = two_band_sweep(n=100)
-    with pytest.raises(InputError, match=r"unknown model.poisson_orientation 'sideways'; choose auto, tangent, probe"):
+    with pytest.raises(InputError, match=r"unknown model.poisson_orientation 'sideways'; choose one of auto, tangent, probe"):
         ultraboneudf.reconstruct(p, device="cpu", method="poisson", probe_positions=probe,
                                  **{"model.poisson_orientation": "sideways"})
     with pytest.raises(InputError, match="needs per-point probe positions"):

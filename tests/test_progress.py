@@ -1,4 +1,5 @@
 import io
+from types import SimpleNamespace
 
 import pytest
 
@@ -33,3 +34,70 @@ def test_lines_come_at_most_once_per_interval_and_quiet_prints_nothing():
     with Progress(quiet=True, stream=quiet).stage("x", 3) as advance:
         advance(3)
     assert quiet.getvalue() == ""
+
+
+def test_training_prints_one_estimate_after_its_first_seconds(monkeypatch):
+    import torch
+
+    from ultraboneudf import training
+
+    monkeypatch.setattr(training, "ESTIMATE_AFTER_S", 0.05)
+    out = io.StringIO()
+    progress = Progress(stream=out, interval=3600.0)
+    clock = iter(range(1000))
+    monkeypatch.setattr(training, "time", SimpleNamespace(perf_counter=lambda: 0.01 * next(clock)))
+    with progress.stage("training", 400) as advance:
+        log = training.LoopLog(400, advance, torch.device("cpu"), 100, lr=1e-3, progress=progress)
+        for i in range(400):
+            log.step(i, {"total": torch.tensor(1.0)})
+    lines = [ln for ln in out.getvalue().splitlines() if ln.startswith("estimate:")]
+    assert len(lines) == 1
+    assert "training takes about 4 s on this CPU (400 steps at 10 ms each)" in lines[0]
+    assert "robust preset" not in lines[0]         # named only when the run is long
+
+
+def test_a_long_cpu_run_names_the_faster_preset(monkeypatch):
+    import torch
+
+    from ultraboneudf import training
+
+    monkeypatch.setattr(training, "ESTIMATE_AFTER_S", 0.5)
+    out = io.StringIO()
+    progress = Progress(stream=out, interval=3600.0)
+    clock = iter(range(100))
+    monkeypatch.setattr(training, "time", SimpleNamespace(perf_counter=lambda: 0.12 * next(clock)))
+    log = training.LoopLog(30_000, lambda n: None, torch.device("cpu"), 100, progress=progress)
+    for i in range(12):
+        log.step(i, {"total": torch.tensor(1.0)})
+    line = out.getvalue().strip()
+    assert line.startswith("estimate: training takes about 60 min on this CPU (30,000 steps at 120 ms")
+    assert "robust preset (the default)" in line
+
+
+def test_tree_distances_report_their_rows_and_give_the_same_answer():
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    from ultraboneudf.evaluation.neighbors import tree_distances
+
+    rng = np.random.default_rng(0)
+    ref, query = rng.normal(size=(5000, 3)), rng.normal(size=(250_001, 3))
+    done = []
+    d = tree_distances(cKDTree(ref), query, workers=1, advance=done.append)
+    assert sum(done) == len(query) and len(done) >= 2
+    assert np.array_equal(d, tree_distances(cKDTree(ref), query, workers=1))
+
+
+def test_reading_frames_reports_each_frame(tmp_path):
+    import numpy as np
+
+    from ultraboneudf.sweep.readers.images import read_stack, write_png
+
+    paths = []
+    for k in range(3):
+        paths.append(tmp_path / f"f{k}.png")
+        write_png(paths[-1], np.full((4, 5), 10 * k, np.uint8))
+    out = io.StringIO()
+    stack = read_stack(paths, progress=Progress(stream=out, interval=0.0))
+    assert stack.shape == (3, 4, 5) and stack[2, 0, 0] == 20
+    assert "read frames: 3/3 (100%)" in out.getvalue().splitlines()[-1]

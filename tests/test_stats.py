@@ -40,7 +40,7 @@ def table1_like_specimen_means() -> tuple[np.ndarray, np.ndarray]:
     """14 per-specimen CD values (mm) for UltraBoneUDF and CAP-UDF.
 
     The paper's per-specimen numbers were not available here, so they are constructed to match
-    what ALGORITHMS.md states about them: means 1.60 and 2.15 mm (Table 1), CAP-UDF better on 6 of
+    what docs/ALGORITHMS.md states about them: means 1.60 and 2.15 mm (Table 1), CAP-UDF better on 6 of
     the 14 specimens (§6.3), and the ranks of those 6 differences summing to 27 — the only signed-rank
     statistic whose exact two-sided p is ≈ 0.119 (Appendix C).
     """

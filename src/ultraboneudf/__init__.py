@@ -5,6 +5,8 @@
 >>> rec = ultraboneudf.reconstruct(points)                        # doctest: +SKIP
 >>> rec.save("bone.ply")                                         # mesh + bone.json sidecar
 
+Section numbers (``§1.6``) in docstrings refer to ``docs/ALGORITHMS.md``, the specification.
+
 The names below are imported on first use, so that ``import ultraboneudf`` (and the command
 line's ``--help``) does not load PyTorch.
 """

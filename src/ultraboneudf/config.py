@@ -1,7 +1,7 @@
 """Typed configuration of a reconstruction, the named presets, and overrides.
 
 A :class:`Config` has one dataclass per stage. Every field carries the paper's or the official
-code's value (see ``ALGORITHMS.md``); the presets differ only where the two disagree (§1.11) and in
+code's value (see ``docs/ALGORITHMS.md``); the presets differ only where the two disagree (§1.11) and in
 the ``fast`` preset designed here. Thresholds of the field and of the extractor are in *unit space*
 (the normalised frame of §0.1); quantities in millimetres say ``_mm`` in their name.
 
@@ -14,15 +14,55 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import typing
 from dataclasses import dataclass, field, fields
-from typing import Any, Mapping
+from functools import cache
+from typing import Any, ClassVar, Literal, Mapping
 
 from .errors import InputError
 
 
+@cache
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def choices(section: Any, name: str) -> tuple[str, ...] | None:
+    """The allowed values of a mode field (annotated ``Literal[...]``) of a config section (a class
+    or an instance), or ``None`` when the field is not a mode."""
+    cls = section if isinstance(section, type) else type(section)
+    hint = _hints(cls).get(name)
+    return typing.get_args(hint) if typing.get_origin(hint) is Literal else None
+
+
+def check_choices(section: Any) -> None:
+    """Raise :class:`InputError` naming the ``--set`` key and the allowed values for every mode field
+    of ``section`` that holds a value outside its ``Literal`` type."""
+    for f in fields(section):
+        _check_choice(section, f.name, getattr(section, f.name))
+
+
+def _check_choice(section: Any, name: str, value: Any) -> None:
+    allowed = choices(section, name)
+    if allowed is not None and value not in allowed:
+        raise InputError(f"unknown {section.SECTION}.{name} {value!r}; choose one of {', '.join(allowed)}")
+
+
+class _Section:
+    """Base of the config sections: the modes are checked on construction (and by :func:`validate`
+    before a run, for values assigned later)."""
+
+    SECTION: ClassVar[str] = ""
+
+    def __post_init__(self) -> None:
+        check_choices(self)
+
+
 @dataclass
-class DataConfig:
+class DataConfig(_Section):
     """Pre-processing: down-sampling, surface subset, queries and anchors (§1.2–1.4)."""
+
+    SECTION: ClassVar[str] = "data"
 
     voxel_size_mm: float = 0.1
     """Edge of the down-sampling voxel in mm (voxel mean, §1.2 step 2); 0 disables it."""
@@ -30,7 +70,7 @@ class DataConfig:
     """At most this many points after the voxel mean: a larger result is voxelised again with a
     coarser voxel (the edge used is ``counts.voxel_size_mm``), so the local-plane stage's cost is
     bounded on clouds of millions of points; 0 = no limit (the reference)."""
-    subset: str = "official"
+    subset: Literal["official", "fps", "all"] = "official"
     """Surface subset rule: ``official`` (FPS 5k ∪ FPS 15k when above ``subset_threshold`` points,
     else all), ``fps`` (FPS to ``max_points`` distinct points, all if fewer), ``all``."""
     subset_threshold: int = 60_000
@@ -47,7 +87,7 @@ class DataConfig:
     """Far-field queries drawn from the two lattices of §0.8; 0 disables them."""
     drop_to_multiple: int = 1_000
     """Official: drop the last ``T mod drop_to_multiple`` stored queries (§1.3 step 4); 0 keeps all."""
-    anchors: str = "official"
+    anchors: Literal["official", "bbox", "none"] = "official"
     """Global-shape anchors: ``official`` (10³ lattice on [−1, 1]³) or ``bbox`` (lattice over the
     bounding box of P, the paper's wording); ``none`` disables L_GS."""
     anchor_resolution: int = 10
@@ -84,7 +124,7 @@ class DataConfig:
     bone goes on past the last detection; 0 = the surface ends at the points."""
     noise_sigma_mm: float = 0.0
     """Gaussian noise (mm) added to the input before pre-processing (experiment E6); 0 = none."""
-    queries: str = "ultraboneudf"
+    queries: Literal["ultraboneudf", "capudf"] = "ultraboneudf"
     """Query recipe: ``ultraboneudf`` (§1.3, ``queries_per_point`` per row + grid queries) or
     ``capudf`` (§3.1: random subset of a multiple of 60 rows, spread κ·σ(p), ⌊total/N⌋ rounds)."""
     capudf_total_queries: int = 1_000_000
@@ -92,8 +132,10 @@ class DataConfig:
 
 
 @dataclass
-class ModelConfig:
+class ModelConfig(_Section):
     """The MLP field (§0.3, §1.5)."""
+
+    SECTION: ClassVar[str] = "model"
 
     hidden: tuple[int, ...] = (64, 128, 128, 256, 256, 256)
     """Hidden widths; the official network has 6 hidden layers (191,042 parameters)."""
@@ -112,15 +154,15 @@ class ModelConfig:
     """Poisson method (§7): octree depth."""
     poisson_scale: float = 1.1
     """Poisson method: the octree cube is this × the input's bounding cube."""
-    poisson_normals: str = "ultraboneudf"
+    poisson_normals: Literal["ultraboneudf", "knn30"] = "ultraboneudf"
     """Poisson method normals (§7.2): ``ultraboneudf`` (PCA radius 0.5, ≤ 1,000 neighbours) or
     ``knn30`` (PCA over 30 neighbours); oriented as ``poisson_orientation`` says."""
-    poisson_orientation: str = "auto"
+    poisson_orientation: Literal["auto", "tangent", "probe"] = "auto"
     """Poisson method normal orientation (§7.2): ``tangent`` (tangent-plane propagation, 15
     neighbours), ``probe`` (each normal turned toward the probe position of its point, alternative B;
     needs per-point probe positions: a sweep input or ``reconstruct(..., probe_positions=…)``) or
     ``auto`` (``probe`` when probe positions are present, else ``tangent``)."""
-    poisson_backend: str = "auto"
+    poisson_backend: Literal["auto", "pymeshlab", "open3d"] = "auto"
     """Poisson library: ``auto`` (first installed of pymeshlab, open3d), ``pymeshlab`` or ``open3d``."""
     poisson_threads: int = 0
     """Poisson solver threads; 0 = ``torch.get_num_threads()``. On an oversubscribed CPU the OpenMP
@@ -128,20 +170,22 @@ class ModelConfig:
 
 
 @dataclass
-class LossConfig:
+class LossConfig(_Section):
     """Loss terms (§1.6)."""
 
-    kind: str = "tangent"
+    SECTION: ClassVar[str] = "loss"
+
+    kind: Literal["tangent", "pull", "capudf"] = "tangent"
     """``tangent`` (UltraBoneUDF, dynamic nearest neighbour), ``pull`` (static target, §5.3) or
     ``capudf`` (CAP-UDF's consistency-aware L1 Chamfer between the batch targets and moved queries,
     §3.3). FUNSR has its own loop (§4.3) and ignores this."""
-    pull_norm: str = "squared"
+    pull_norm: Literal["squared", "unsquared"] = "squared"
     """``pull`` loss: ``squared`` (Eq. 3 as printed) or ``unsquared`` (FUNSR's code, §4.3)."""
-    tangent_norm: str = "l1"
+    tangent_norm: Literal["l1", "l2"] = "l1"
     """Residual penalty of the tangent loss: ``l1`` (official code) or ``l2`` (paper, Eq. 6)."""
     lambda_tangent: float = 1.0
     lambda_gs: float = 0.01
-    gs_form: str = "broadcast"
+    gs_form: Literal["per_anchor", "broadcast"] = "broadcast"
     """How ``L_GS`` pairs outputs and targets: ``per_anchor``, ``mean_i (u(ρ_i) − t_i)²`` (the paper's
     Eq. 7); ``broadcast``, ``mean_i mean_j (u(ρ_i) − t_j)²`` = ``mean_i (u(ρ_i) − mean t)² + var t``,
     what the reference computes (``nn.MSELoss`` of a (G, 1) output against (G,) targets broadcasts to
@@ -159,7 +203,7 @@ class LossConfig:
     far_threshold: float = 0.01
     """``lambda_far``: queries closer to ``P`` than this (unit space) are left to the main loss; 0 =
     the term acts on every query (the ``fast`` preset)."""
-    distance_target: str = "point"
+    distance_target: Literal["point", "surface"] = "point"
     """What ``warm_start`` and ``lambda_far`` regress ``u(q)`` on: ``point``, the distance to the
     nearest surface point ``t(q)`` (the reference's target); ``surface``, the distance to the surface
     interpolated between the points across gaps up to ``data.bridge`` (:mod:`~ultraboneudf.geometry.
@@ -184,18 +228,20 @@ class LossConfig:
 
 
 @dataclass
-class TrainConfig:
+class TrainConfig(_Section):
     """The per-scan optimisation (§1.7)."""
+
+    SECTION: ClassVar[str] = "train"
 
     iters: int = 30_000
     batch: int = 5_000
-    sampler: str = "strided"
+    sampler: Literal["strided", "epoch"] = "strided"
     """Batch draw: ``strided`` (the reference, §0.5) or ``epoch`` (consecutive batches of one
     permutation of all stored queries per pass)."""
     threads: int = 0
     """CPU threads of the training loop; 0 = PyTorch's setting. A small batch runs faster on one
     thread (measured at batch 250 on 2 cores: 22 ms/step on one, 26 ms on two)."""
-    step: str = "optimised"
+    step: Literal["optimised", "plain"] = "optimised"
     """``optimised`` (hand-written input gradient and fused Adam) or ``plain`` (autograd's double
     backward and PyTorch's default Adam): the same losses and updates (tested to fp32 precision)."""
     lr: float = 1e-3
@@ -221,8 +267,10 @@ class TrainConfig:
 
 
 @dataclass
-class ExtractConfig:
+class ExtractConfig(_Section):
     """DualMesh-UDF (§2); thresholds in unit space. Defaults: the UltraBoneUDF call of §1.8."""
+
+    SECTION: ClassVar[str] = "extract"
 
     max_depth: int = 9
     sampling_depth: int = 1
@@ -243,21 +291,21 @@ class ExtractConfig:
     distance ≈ 0.5) otherwise drops whole octants that contain surface."""
     domain: tuple[float, float] = (-1.0, 1.0)
     """The octree cube [lo, hi]³ in unit space."""
-    mode: str = "faithful"
+    mode: Literal["faithful", "clean", "capudf_mc", "sdf_mc", "udf2sdf"] = "faithful"
     """``faithful`` reproduces DualMesh-UDF; ``clean`` returns a one-layer manifold-edged mesh;
     the grid extractors (``extraction/marching.py``): ``capudf_mc`` (CAP-UDF pseudo-sign per-cell
     marching cubes, §3.5), ``sdf_mc`` (marching cubes of a signed field, §4.5), ``udf2sdf``
     (CarotidUDF, §5.4)."""
     resolution: int = 256
     """Grid extractors: grid points per axis."""
-    grid_box: str = "domain"
+    grid_box: Literal["domain", "surface"] = "domain"
     """Grid extractors: ``domain`` (the cube ``domain``³, FUNSR/CarotidUDF) or ``surface`` (bounding box
     of the surface points enlarged by ``box_margin`` per side, CAP-UDF)."""
     box_margin: float = 0.05
     """``grid_box = surface``: enlargement per side (unit space)."""
     cell_threshold: float = 0.005
     """``capudf_mc`` / ``local-flip``: skip cells whose smallest corner value exceeds this."""
-    udf2sdf: str = "normal-sign"
+    udf2sdf: Literal["normal-sign", "eps-shell", "local-flip"] = "normal-sign"
     """``udf2sdf`` conversion: ``normal-sign`` (default), ``eps-shell`` or ``local-flip`` (§5.4)."""
     udf2sdf_project: bool = False
     """``eps-shell``: project the vertices onto the zero set with ``v ← v − u·ĝ``."""
@@ -281,7 +329,7 @@ class ExtractConfig:
     clean_crossing: float = 0.5
     """Clean mode: a leaf-lattice edge whose end gradients oppose counts as crossed only if the UDF
     at the estimated crossing is below ``clean_crossing × leaf edge + margin``."""
-    clean_vertex: str = "qef"
+    clean_vertex: Literal["qef", "mass"] = "qef"
     """Clean mode vertex: ``qef`` (the §2.6 vertex of the leaf if within ``clean_qef_window`` cells
     of it, else the mean of the leaf's crossing points) or ``mass`` (always that mean)."""
     clean_qef_window: float = 0.5
@@ -485,48 +533,63 @@ def _resolve_key(cfg: Config, key: str) -> tuple[Any, str]:
     return owners[0], key
 
 
-def _coerce(current: Any, value: Any, key: str) -> Any:
-    """Convert ``value`` (possibly a string from the command line) to the type of ``current``."""
+def _expected(hint: Any) -> str:
+    """How a value of type ``hint`` is written on the command line (for error messages)."""
+    if typing.get_origin(hint) is tuple:
+        inner = typing.get_args(hint)[0]
+        return "comma-separated " + ("integers" if inner is int else "numbers")
+    return {bool: "true or false", int: "an integer", float: "a number"}.get(hint, "a string")
+
+
+def _coerce(hint: Any, value: Any, key: str) -> Any:
+    """Convert ``value`` (possibly a string from the command line) to the type ``hint`` of a field."""
     try:
-        if isinstance(value, str):
-            if isinstance(current, bool):
+        if typing.get_origin(hint) is tuple:
+            if isinstance(value, str):
+                value = json.loads("[" + value.strip("()[] ") + "]")
+            if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__"):
+                raise ValueError(value)
+            inner = typing.get_args(hint)[0]
+            return tuple(_coerce(inner, v, key) for v in value)
+        if hint is bool:
+            if isinstance(value, str):
                 low = value.strip().lower()
                 if low not in {"true", "false", "1", "0", "yes", "no"}:
                     raise ValueError(value)
                 return low in {"true", "1", "yes"}
-            if isinstance(current, (int, float, tuple)):
-                parsed = json.loads(value if not isinstance(current, tuple) else
-                                    "[" + value.strip("()[] ") + "]")
-                return _coerce(current, parsed, key)
-            return value
-        if isinstance(current, bool):
             if not isinstance(value, bool):
                 raise ValueError(value)
             return value
-        if isinstance(current, int):
-            if isinstance(value, bool) or float(value) != int(value):
+        if hint in (int, float):
+            if isinstance(value, str):
+                value = json.loads(value)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ValueError(value)
-            return int(value)
-        if isinstance(current, float):
+            if hint is int:
+                if float(value) != int(value):
+                    raise ValueError(value)
+                return int(value)
             return float(value)
-        if isinstance(current, tuple):
-            return tuple(_coerce(current[0] if current else 0.0, v, key) for v in value)
+        if not isinstance(value, str):
+            raise ValueError(value)
         return value
-    except (ValueError, TypeError, json.JSONDecodeError):
-        raise InputError(f"bad value {value!r} for config key {key!r} "
-                         f"(expected {type(current).__name__})") from None
+    except (ValueError, TypeError, OverflowError, json.JSONDecodeError):
+        raise InputError(f"bad value {value!r} for config key {key!r} (expected {_expected(hint)})") from None
 
 
 def _set(cfg: Config, key: str, value: Any) -> None:
     obj, name = _resolve_key(cfg, key)
-    setattr(obj, name, _coerce(getattr(obj, name), value, key))
+    hint = _hints(type(obj))[name]
+    value = _coerce(str if choices(obj, name) else hint, value, key)
+    _check_choice(obj, name, value)
+    setattr(obj, name, value)
 
 
 MAX_DEPTH = 11
 """Deepest octree a run may ask for (2,048 leaves per axis; depth 12 exceeds a workstation's memory)."""
 
 
-GS_FORMS = ("per_anchor", "broadcast")
+GS_FORMS: tuple[str, ...] = choices(LossConfig, "gs_form")
 """The forms of ``L_GS`` (:attr:`LossConfig.gs_form`)."""
 
 
@@ -541,6 +604,12 @@ def validate(cfg: Config, trains: bool = True) -> Config:
             section, name = key.split(".")
             problems.append(f"{key}={getattr(getattr(cfg, section), name)!r} ({what})")
 
+    for section in _sections(cfg).values():
+        check_choices(section)
+        for f in fields(section):
+            value = getattr(section, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                problems.append(f"{section.SECTION}.{f.name}={value!r} (a finite number)")
     t, d, e, lo = cfg.train, cfg.data, cfg.extract, cfg.loss
     need(t.iters >= (1 if trains else 0), "train.iters", "at least 1")
     need(t.batch >= 1, "train.batch", "at least 1")
@@ -558,7 +627,6 @@ def validate(cfg: Config, trains: bool = True) -> Config:
     need(d.max_voxels >= 0, "data.max_voxels", "0 (no limit) or more")
     need(lo.gs_anchors >= 0, "loss.gs_anchors", "0 (all) or more")
     need(lo.os_rows >= 0, "loss.os_rows", "0 (all) or more")
-    need(lo.gs_form in GS_FORMS, "loss.gs_form", " or ".join(GS_FORMS))
     if problems:
         raise InputError("bad configuration: " + "; ".join(problems))
     return cfg

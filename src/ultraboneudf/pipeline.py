@@ -192,7 +192,7 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
     """
     t_start = time.perf_counter()
     progress = progress or Progress(quiet=quiet)
-    cfg, entry = _configure(preset, method, config, overrides, assignments)
+    cfg, entry = configure(preset, method, config, overrides, assignments)
     dev = resolve_device(device)
     points = validate_points(points_mm, source=source)
     check_units(points, source)
@@ -232,7 +232,7 @@ def reconstruct_many(clouds_mm: Sequence[Any], preset: str = DEFAULT_PRESET, dev
     names = list(sources) if sources is not None else [f"scan {k}" for k in range(len(clouds))]
     if not clouds or len(names) != len(clouds):
         raise InputError("reconstruct_many needs at least one cloud and one source name per cloud")
-    cfg, _ = _configure(preset, "ultraboneudf", None, overrides, assignments)
+    cfg, _ = configure(preset, "ultraboneudf", None, overrides, assignments)
     dev = resolve_device(device)
     units, datas, stages, prep = [], [], [], []
     for cloud, name in zip(clouds, names):
@@ -274,8 +274,8 @@ class _UnitCloud:
     surface_fit_s: float
 
 
-def _configure(preset: str, method: str, config: Config | None, overrides: dict[str, Any],
-               assignments: list[str] | tuple[str, ...]) -> tuple[Config, Any]:
+def configure(preset: str, method: str, config: Config | None = None, overrides: dict[str, Any] | None = None,
+              assignments: list[str] | tuple[str, ...] = ()) -> tuple[Config, Any]:
     """The run's configuration: ``config`` as given, else the preset with the method's defaults,
     then the overrides; and the method's registry entry."""
     entry = get_method(method)

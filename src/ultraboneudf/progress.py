@@ -113,7 +113,7 @@ class Progress:
     def log(self, message: str) -> None:
         """One line of information on stderr (not shown when quiet)."""
         if not self.quiet:
-            self._console.print(message, highlight=False)
+            self._console.print(message, highlight=False, soft_wrap=True)  # one line in a log file
 
 
 QUIET = Progress(quiet=True)

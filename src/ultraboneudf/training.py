@@ -16,7 +16,7 @@ from typing import Callable
 import torch
 from torch import nn
 
-from .config import LossConfig, TrainConfig
+from .config import LossConfig, TrainConfig, check_choices
 from .errors import InputError
 from .fields.base import normalize
 from .fields.mlp import value_and_grad
@@ -122,18 +122,28 @@ class TrainResult:
     history: dict[str, list[float]] = field(default_factory=dict)
 
 
+ESTIMATE_AFTER_S = 2.0
+"""Seconds of steady training after which :class:`LoopLog` prints its one-line estimate."""
+
+SLOW_RUN_S = 600.0
+"""A CPU training estimate above this also names the faster preset."""
+
+
 class LoopLog:
     """Bookkeeping shared by the training loops: the loss terms every ``log_every`` steps (and the
-    last) kept as device tensors and read once at the end, progress ticks, and the wall time of the
-    loop, synchronised with the device."""
+    last) kept as device tensors and read once at the end, progress ticks, the wall time of the
+    loop, synchronised with the device, and one line through ``progress`` after the first seconds
+    of steady steps with the time the training will take at that pace."""
 
     def __init__(self, iters: int, advance: Callable[[float], None], device: torch.device,
-                 log_every: int, lr: float | None = None) -> None:
+                 log_every: int, lr: float | None = None, progress: Progress = QUIET) -> None:
         self.iters, self.advance, self.device, self.log_every = iters, advance, device, log_every
-        self.lr = lr
+        self.lr, self.progress = lr, progress
         self.tick = max(1, min(50, iters // 100))
         self.terms: dict[str, list[torch.Tensor]] = {}
         self.start = time.perf_counter()
+        self._steady: float | None = None      # when the first (allocating) steps were over
+        self._estimated = progress.quiet
 
     def step(self, i: int, terms: dict[str, torch.Tensor]) -> None:
         """Record after the 0-based step ``i``; stop (:class:`InputError`) when the loss is no longer
@@ -147,6 +157,32 @@ class LoopLog:
                                  f"{self.iters}{hint}")
         if (i + 1) % self.tick == 0:
             self.advance(self.tick)
+        if not self._estimated:
+            self._estimate(i)
+
+    def _estimate(self, i: int) -> None:
+        first = min(4, self.iters - 1)
+        if i < first:
+            return
+        now = time.perf_counter()
+        if i == first:
+            self._steady = now
+            return
+        if now - self._steady < ESTIMATE_AFTER_S:   # a run shorter than that needs no estimate
+            return
+        if self.device.type == "cuda":  # once: the queued steps are part of the pace
+            torch.cuda.synchronize(self.device)
+            now = time.perf_counter()
+        self._estimated = True
+        pace = (now - self._steady) / (i - first)
+        left = pace * (self.iters - 1 - i)
+        line = (f"estimate: training takes about {_duration(now - self.start + left)} on this "
+                f"{'CPU' if self.device.type == 'cpu' else 'GPU'} ({self.iters:,} steps at {_duration(pace, fine=True)} each); "
+                f"then the mesh is extracted")
+        if self.device.type == "cpu" and left > SLOW_RUN_S:
+            line += ("; the robust preset (the default) takes about a minute for 100,000 points on a "
+                     "CPU, a GPU runs this preset in minutes")
+        self.progress.log(line)
 
     def finish(self) -> tuple[float, dict[str, list[float]]]:
         """Seconds since the start and the history as plain lists (one host read)."""
@@ -154,6 +190,17 @@ class LoopLog:
             torch.cuda.synchronize(self.device)
         seconds = time.perf_counter() - self.start
         return seconds, {k: torch.stack(v).cpu().tolist() for k, v in self.terms.items()}
+
+
+def _duration(seconds: float, fine: bool = False) -> str:
+    """``0.8 ms``, ``42 s``, ``3 min``, ``1 h 20 min``: as precise as a person plans with."""
+    if fine and seconds < 1.0:
+        return f"{seconds * 1e3:.3g} ms"
+    if seconds < 90:
+        return f"{seconds:.2g} s" if fine and seconds < 10 else f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{int(seconds // 3600)} h {round(seconds % 3600 / 60)} min"
 
 
 def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: TrainingData,
@@ -243,10 +290,8 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     batch becomes ``train_cfg.expand_batch``. The optimiser state and the schedule carry over."""
     device = data.queries.device
     generator = torch.Generator(device=device).manual_seed(seed)
-    if train_cfg.sampler not in SAMPLERS:
-        raise InputError(f"unknown train.sampler {train_cfg.sampler!r}; choose one of {', '.join(SAMPLERS)}")
-    if train_cfg.step not in ("optimised", "plain"):
-        raise InputError(f"unknown train.step {train_cfg.step!r}; choose optimised or plain")
+    check_choices(train_cfg)
+    check_choices(loss_cfg)
     make_sampler = SAMPLERS[train_cfg.sampler]
     sampler = make_sampler(len(data.queries), train_cfg.batch, generator, device)
     nn_index = NearestIndex(data.surface)
@@ -265,7 +310,7 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     net.train()
     threads = train_cfg.threads if device.type == "cpu" else 0
     with cpu_threads(threads), progress.stage("training", iters) as advance:
-        log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr)
+        log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr, progress=progress)
         for i in range(iters):
             if expand is not None and train_cfg.expand_at > 0 and i == train_cfg.expand_at:
                 net.eval()

@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .config import GS_FORMS, LossConfig, TrainConfig
+from .config import GS_FORMS, LossConfig, TrainConfig, check_choices
 from .errors import InputError
 from .fields.base import normalize
 from .fields.mlp import DistanceMLP
@@ -122,8 +122,8 @@ def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: Los
     _check(loss_cfg)
     if not (len(nets) == len(datas) == len(seeds) >= 1):
         raise ValueError("need one network, one data set and one seed per scan")
-    if train_cfg.sampler not in SAMPLERS:
-        raise InputError(f"unknown train.sampler {train_cfg.sampler!r}; choose one of {', '.join(SAMPLERS)}")
+    check_choices(train_cfg)
+    check_choices(loss_cfg)
     device = datas[0].queries.device
     k_scans, iters = len(nets), train_cfg.iters
     stacked = StackedMLP(nets).to(device)
@@ -142,7 +142,7 @@ def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: Los
     stacked.train()
     threads = train_cfg.threads if device.type == "cpu" else 0
     with cpu_threads(threads), progress.stage("training", iters) as advance:
-        log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr)
+        log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr, progress=progress)
         for i in range(iters):
             for group in opt.param_groups:
                 group["lr"] = learning_rate(i, train_cfg.lr, train_cfg.warmup, iters)

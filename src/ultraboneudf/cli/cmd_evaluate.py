@@ -1,4 +1,4 @@
-"""``ultraboneudf evaluate RECON --gt GT``: Chamfer distance and HD95 in mm (ALGORITHMS.md §6.2)."""
+"""``ultraboneudf evaluate RECON --gt GT``: Chamfer distance and HD95 in mm (docs/ALGORITHMS.md §6.2)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from ..errors import InputError
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "evaluate", help="Chamfer distance and HD95 (mm) of a reconstruction against a ground-truth mesh",
-        description="Metrics of ALGORITHMS.md §6.2, in mm: points sampled uniformly by area on both "
+        description="Metrics of docs/ALGORITHMS.md §6.2, in mm: points sampled uniformly by area on both "
                     "meshes (seeded), directed Euclidean nearest-neighbour distances, CD = ½(mean d_RG + "
                     "mean d_GR), HD95 = max of the two directed 95th percentiles. With --points, the "
                     "ground truth is restricted to samples within --pseudo-gt-mm of the raw ultrasound "

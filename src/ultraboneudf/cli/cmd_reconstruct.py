@@ -86,13 +86,14 @@ def read_input(path: Path, args: argparse.Namespace,
 
 def run(args: argparse.Namespace) -> int:
     from ..io import check_outputs, sha256_file
-    from ..pipeline import reconstruct
+    from ..pipeline import configure, reconstruct
     from ..progress import Progress
 
     output = check_outputs(args.output, (args.input,))  # before any work: never lose the user's data
+    overrides = {} if args.iters is None else {"train.iters": args.iters}
+    configure(args.preset, args.method, None, overrides, args.assignments)  # a bad --set: before reading
     progress = Progress(quiet=args.quiet)
     points, probe, sweep_info = read_input(args.input, args, progress)
-    overrides = {} if args.iters is None else {"train.iters": args.iters}
     rec = reconstruct(points, preset=args.preset, device=args.device, seed=args.seed, method=args.method,
                       assignments=args.assignments, progress=progress, source=str(args.input),
                       probe_positions=probe, **overrides)

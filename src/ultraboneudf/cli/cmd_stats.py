@@ -16,7 +16,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "mean over the specimen's reconstructions; mean: mean of the specimen means; best in "
                     "bold) and paired two-sided Wilcoxon signed-rank tests of the baseline against each "
                     "other method, paired by reconstruction, zero differences discarded, with "
-                    "p_corr = min(1, k·p_raw) (ALGORITHMS.md §6.3).")
+                    "p_corr = min(1, k·p_raw) (docs/ALGORITHMS.md §6.3).")
     p.add_argument("results", metavar="RESULTS", help="results CSV")
     p.add_argument("--baseline", required=True, metavar="M", help="the method tested against every other one")
     p.add_argument("--metric", default="both", choices=["cd_mm", "hd95_mm", "both"], help="default: both")

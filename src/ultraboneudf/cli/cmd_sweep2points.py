@@ -79,7 +79,7 @@ def encode_points(path: Path, cp) -> bytes:
 
 
 def _write_overlays(sweep, masks: np.ndarray, folder: Path) -> list[Path]:
-    from ..sweep.figures import contact_sheet, overlay, save_png
+    from ..sweep.figures import contact_sheet, mark_dilation, overlay, save_png
 
     if sweep.images is None:
         return []
@@ -87,7 +87,7 @@ def _write_overlays(sweep, masks: np.ndarray, folder: Path) -> list[Path]:
     per_sheet = 30
     for s in range(0, sweep.n_frames, per_sheet):
         idx = range(s, min(sweep.n_frames, s + per_sheet))
-        tiles = [overlay(sweep.images[i], masks[i], dilate=max(1, sweep.height // 300)) for i in idx]
+        tiles = [overlay(sweep.images[i], masks[i], dilate=mark_dilation(sweep.width, 320)) for i in idx]
         path = folder / f"overlay_{s // per_sheet:03d}.png"
         save_png(contact_sheet(tiles, [Path(sweep.frame_names[i]).name for i in idx], columns=6,
                                tile_width=320), path, greys=64)

@@ -128,8 +128,7 @@ def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, to
     from ..sweep.chain import frames_coplanar
     from ..sweep.readers.images import load_mask_stack
 
-    with progress.stage("read sweep", None):
-        sweep = read_sweep(path, **read_options(args, path))
+    sweep = read_sweep(path, progress=progress, **read_options(args, path))
     chain = sweep.meta.get("chain")
     if chain:
         progress.log(f"{path.name}: pose chain {chain['pixel_frame']}→{chain['reference_frame']} = "

@@ -1,4 +1,4 @@
-"""Evaluation as the paper does it (ALGORITHMS.md §6.2, §6.3, §1.9): metrics, statistics, tables,
+"""Evaluation as the paper does it (docs/ALGORITHMS.md §6.2, §6.3, §1.9): metrics, statistics, tables,
 pictures. Everything is in millimetres.
 
 Metrics (:mod:`.metrics`): area-uniform seeded sampling of both surfaces (5,000,000 points each by

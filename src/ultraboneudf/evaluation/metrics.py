@@ -1,4 +1,4 @@
-"""Surface-to-surface metrics as the paper computes them (ALGORITHMS.md §6.2, §1.9). All in mm.
+"""Surface-to-surface metrics as the paper computes them (docs/ALGORITHMS.md §6.2, §1.9). All in mm.
 
 Conventions, stated once and used everywhere:
 
@@ -287,12 +287,14 @@ def evaluate(recon: Optional[MeshLike], gt: Union[MeshLike, GroundTruth],
             return _failure(str(exc), truth, samples, device, timings)
     timings["sample_s"] = time.perf_counter() - t1
     t2 = time.perf_counter()
-    with progress.stage("distances"):
+    with progress.stage("distances", len(s_r) + len(truth.points)) as advance:
         if device == "cpu":
-            d_rg = tree_distances(truth.tree, s_r, workers=workers, presorted=True)
-            d_gr = tree_distances(build_tree(s_r), truth.points, workers=workers, presorted=True)
+            d_rg = tree_distances(truth.tree, s_r, workers=workers, presorted=True, advance=advance)
+            d_gr = tree_distances(build_tree(s_r), truth.points, workers=workers, presorted=True,
+                                  advance=advance)
         else:
             d_rg = grid_distances(s_r, truth.points, device=device, workers=workers)
+            advance(len(s_r))
             d_gr = grid_distances(truth.points, s_r, device=device, workers=workers)
     timings["distance_s"] = time.perf_counter() - t2
     numbers = metrics_from_distances(d_rg, d_gr)

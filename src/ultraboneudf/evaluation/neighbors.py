@@ -16,6 +16,8 @@ Distances are Euclidean, not squared.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -57,19 +59,29 @@ def build_tree(points: np.ndarray) -> cKDTree:
 
 
 def tree_distances(tree: cKDTree, query: np.ndarray, workers: int = -1,
-                   presorted: bool = False) -> np.ndarray:
+                   presorted: bool = False, advance: Callable[[float], None] | None = None) -> np.ndarray:
     """Distance (mm) from each query row to its nearest point in ``tree``; ``(M,)`` float64.
 
     Queries are searched in Morton order (skipped when ``presorted``, e.g. the output of
-    :func:`spatially_sorted`) and the result returned in the caller's order.
+    :func:`spatially_sorted`) and the result returned in the caller's order. ``advance(n)``, if
+    given, is told of the rows done, a twentieth at a time (a progress stage of ``M`` steps).
     """
     query = np.asarray(query, dtype=np.float64)
     if len(query) == 0:
         return np.zeros(0, dtype=np.float64)
-    if presorted:
-        return tree.query(query, k=1, workers=workers)[0]
-    order = morton_order(query)
-    d_sorted, _ = tree.query(query[order], k=1, workers=workers)
+    order = None if presorted else morton_order(query)
+    rows = query if order is None else query[order]
+    if advance is None:
+        d_sorted = tree.query(rows, k=1, workers=workers)[0]
+    else:
+        d_sorted = np.empty(len(rows), dtype=np.float64)
+        step = max(100_000, -(-len(rows) // 20))
+        for s in range(0, len(rows), step):
+            chunk = rows[s:s + step]
+            d_sorted[s:s + len(chunk)] = tree.query(chunk, k=1, workers=workers)[0]
+            advance(len(chunk))
+    if order is None:
+        return d_sorted
     out = np.empty(len(query), dtype=np.float64)
     out[order] = d_sorted
     return out

@@ -16,7 +16,7 @@ because UDF meshes are not consistently oriented. Images are drawn at 2× and bo
 Distances are per vertex: each vertex's distance to the nearest of ``colour_samples`` area-uniform
 ground-truth samples (after the pseudo-GT filter when raw points are given), interpolated across
 faces. The mean under the bar is the area-weighted mean of these vertex distances, an estimate of
-mean ``d_RG`` (ALGORITHMS.md §6.2).
+mean ``d_RG`` (docs/ALGORITHMS.md §6.2).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Seeded, area-uniform sampling of triangle meshes (ALGORITHMS.md §6.2 steps 1–2).
+"""Seeded, area-uniform sampling of triangle meshes (docs/ALGORITHMS.md §6.2 steps 1–2).
 
 The sampler only needs vertices and faces, so it accepts anything a reconstruction method returns:
 triangle soups (no shared vertices), non-manifold edges, inconsistent orientation, duplicated and

@@ -1,4 +1,4 @@
-"""Statistics of ALGORITHMS.md §6.3: paired Wilcoxon signed-rank tests with Bonferroni correction,
+"""Statistics of docs/ALGORITHMS.md §6.3: paired Wilcoxon signed-rank tests with Bonferroni correction,
 per-specimen means and the mean of the specimen means (Tables 1–3).
 
 Data model: one :class:`Record` per (method, specimen, reconstruction) with the metrics in mm;

@@ -1,7 +1,7 @@
 """Tables like the paper's (Tables 1–3): methods × specimens + mean, best value in bold.
 
 A cell is the mean over that specimen's successful reconstructions (mm); "mean" is the mean of the
-specimen means (ALGORITHMS.md §6.1). Lower is better for every metric here, so the bold cell of a
+specimen means (docs/ALGORITHMS.md §6.1). Lower is better for every metric here, so the bold cell of a
 column is its minimum, compared at the printed precision (visible ties are all bold). A ``failed``
 column is added when any reconstruction failed. Output: Markdown, CSV (plain numbers, no bold) and
 LaTeX (booktabs).

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from ..config import ExtractConfig
+from ..config import ExtractConfig, check_choices, choices
 from ..errors import InputError
 from ..fields.base import Field
 from ..progress import QUIET, Progress
@@ -22,7 +22,7 @@ from .dualmesh import CORNER, EDGE, PLANE, TYPE_NAMES, band_threshold, dualmesh_
 from .quality import data_fit, mesh_quality
 from .trim import trim_to_support
 
-MODES = ("faithful", "clean", "capudf_mc", "sdf_mc", "udf2sdf")
+MODES: tuple[str, ...] = choices(ExtractConfig, "mode")
 
 
 def _grid_box(cfg: ExtractConfig, surface: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -34,7 +34,7 @@ def _grid_box(cfg: ExtractConfig, surface: np.ndarray | None) -> tuple[np.ndarra
             raise InputError("extract.grid_box=surface needs the surface points; this method provides none "
                              "(use --set extract.grid_box=domain)")
         return surface.min(axis=0) - cfg.box_margin, surface.max(axis=0) + cfg.box_margin
-    raise InputError(f"unknown extract.grid_box {cfg.grid_box!r}; choose domain or surface")
+    raise AssertionError(cfg.grid_box)  # check_choices admits no other value
 
 
 def extract_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET, *,
@@ -45,6 +45,7 @@ def extract_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET, *
     ``surface`` (N, 3) and ``normals`` (N, 3), unit space, are used by the grid extractors that need
     them (``grid_box = surface``, ``far``, ``udf2sdf = normal-sign``). Returns the mesh in the field's
     coordinates, or ``None`` when there is no surface."""
+    check_choices(cfg)
     if cfg.mode == "faithful":
         return dualmesh_udf(field, cfg, progress)
     if cfg.mode == "clean":
@@ -61,7 +62,7 @@ def extract_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET, *
         return udf_to_sdf_marching_cubes(field, cfg.udf2sdf, cfg.resolution, tuple(cfg.domain), surface,
                                          normals, project=cfg.udf2sdf_project, threshold=cfg.cell_threshold,
                                          batch=cfg.batch, progress=progress)
-    raise InputError(f"unknown extraction mode {cfg.mode!r}; choose one of {', '.join(MODES)}")
+    raise AssertionError(cfg.mode)  # check_choices admits no other value
 
 
 __all__ = ["extract_mesh", "dualmesh_udf", "clean_udf_mesh", "capudf_marching_cubes", "sdf_marching_cubes",

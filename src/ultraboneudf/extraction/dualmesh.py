@@ -1,4 +1,4 @@
-"""DualMesh-UDF mesh extraction (ALGORITHMS.md §2), vectorised in torch over a sparse octree band.
+"""DualMesh-UDF mesh extraction (docs/ALGORITHMS.md §2), vectorised in torch over a sparse octree band.
 
 The reference (DMU, C++) walks an octree; here every stage is a batched tensor operation on the
 cells that survive subdivision (§2.12): int64 cell keys, one batched field query per level, the

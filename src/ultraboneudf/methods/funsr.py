@@ -97,7 +97,7 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     lc, iters = cfg.loss, cfg.train.iters
     net.train()
     with progress.stage("training", iters) as advance:
-        log = LoopLog(iters, advance, device, log_every, lr=cfg.train.lr)
+        log = LoopLog(iters, advance, device, log_every, lr=cfg.train.lr, progress=progress)
         for i in range(iters):
             for group in opt.param_groups:
                 group["lr"] = learning_rate(i, cfg.train.lr, cfg.train.warmup, iters)

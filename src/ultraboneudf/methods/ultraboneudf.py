@@ -9,7 +9,7 @@ import time
 import numpy as np
 import torch
 
-from ..config import Config, model_widths
+from ..config import Config, check_choices, model_widths
 from ..errors import InputError
 from ..fields.mlp import DistanceMLP, MLPField, count_parameters
 from ..geometry.neighbors import NearestIndex
@@ -38,8 +38,7 @@ def prepare(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     if static_targets is None:
         static_targets = (cfg.loss.kind in ("pull", "capudf") or cfg.loss.warm_start > 0
                           or cfg.loss.lambda_far > 0)
-    if cfg.loss.distance_target not in ("point", "surface"):
-        raise InputError(f"unknown loss.distance_target {cfg.loss.distance_target!r}; choose point or surface")
+    check_choices(cfg.loss)
     if static_targets and cfg.loss.distance_target == "surface" and planes is None:
         raise InputError("loss.distance_target=surface needs the local planes: set data.surface_fit_mm > 0")
     d = cfg.data

@@ -4,11 +4,13 @@ a point-cloud splat render. Used by ``sweep2points --overlays`` and the docs fig
 from __future__ import annotations
 
 import io
+import math
 import os
 from typing import Sequence
 
 import numpy as np
-from PIL import Image, ImageDraw
+from PIL import Image, ImageDraw, ImageFont
+from scipy.ndimage import maximum_filter
 
 from ..io import atomic_write_bytes
 
@@ -25,12 +27,18 @@ def ramp(t: np.ndarray) -> np.ndarray:
     return np.rint(FRAME_COLOURS[i] * (1 - f) + FRAME_COLOURS[i + 1] * f).astype(np.uint8)
 
 
+def mark_dilation(image_width: int, tile_width: int) -> int:
+    """The ``dilate`` of :func:`overlay` that keeps a one-pixel mask at least two pixels thick once
+    a frame ``image_width`` pixels wide is scaled to a tile ``tile_width`` wide."""
+    return max(1, math.ceil(image_width / max(tile_width, 1)))
+
+
 def overlay(image: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int] = (255, 40, 40),
             truth: np.ndarray | None = None, dilate: int = 1) -> Image.Image:
     """RGB picture of a grey frame with ``mask`` drawn in ``colour`` (and ``truth`` in green).
 
-    ``dilate`` thickens the drawn lines by that many pixels each way so thin masks stay visible
-    after down-scaling.
+    ``dilate`` thickens the drawn marks by that many pixels each way (:func:`mark_dilation` picks it
+    for a contact sheet) so thin masks stay visible after down-scaling.
     """
     img = np.asarray(image)
     if img.dtype != np.uint8:
@@ -39,10 +47,7 @@ def overlay(image: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int] = 
 
     def thick(m: np.ndarray) -> np.ndarray:
         m = np.asarray(m, dtype=bool)
-        out = m.copy()
-        for dy in range(-dilate, dilate + 1):
-            out |= np.roll(m, dy, axis=0)
-        return out
+        return maximum_filter(m, size=2 * dilate + 1) if dilate > 0 else m
 
     if truth is not None:
         rgb[thick(truth)] = (40, 220, 60)
@@ -52,13 +57,18 @@ def overlay(image: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int] = 
 
 def contact_sheet(tiles: Sequence[Image.Image], labels: Sequence[str] | None = None,
                   columns: int = 5, tile_width: int = 320) -> Image.Image:
-    """Grid of pictures scaled to ``tile_width`` pixels wide, each with an optional label."""
+    """Grid of pictures scaled to ``tile_width`` pixels wide, each with an optional label (on a dark
+    box, so it reads over bright tissue)."""
+    font = _font(max(11, min(18, tile_width // 20)))
     scaled = []
     for k, t in enumerate(tiles):
         h = max(1, round(t.size[1] * tile_width / t.size[0]))
-        im = t.convert("RGB").resize((tile_width, h), Image.BILINEAR)
+        im = t.convert("RGB").resize((tile_width, h), Image.LANCZOS)
         if labels is not None:
-            ImageDraw.Draw(im).text((4, 3), str(labels[k]), fill=(255, 255, 0))
+            d = ImageDraw.Draw(im)
+            box = d.textbbox((4, 3), str(labels[k]), font=font)
+            d.rectangle((box[0] - 3, box[1] - 2, box[2] + 3, box[3] + 2), fill=(0, 0, 0))
+            d.text((4, 3), str(labels[k]), fill=(255, 255, 0), font=font)
         scaled.append(im)
     th = max(im.size[1] for im in scaled)
     rows = (len(scaled) + columns - 1) // columns
@@ -66,6 +76,13 @@ def contact_sheet(tiles: Sequence[Image.Image], labels: Sequence[str] | None = N
     for k, im in enumerate(scaled):
         sheet.paste(im, ((k % columns) * tile_width, (k // columns) * th))
     return sheet
+
+
+def _font(size: int) -> ImageFont.ImageFont:
+    try:
+        return ImageFont.load_default(size=size)   # a scalable font (Pillow ≥ 10.1 with FreeType)
+    except (TypeError, OSError):
+        return ImageFont.load_default()
 
 
 def _splat(u: np.ndarray, v: np.ndarray, depth: np.ndarray, colours: np.ndarray,
@@ -166,11 +183,13 @@ def frames_with_mesh(sweep, masks: np.ndarray, mesh, frames: Sequence[int], colu
     reconstructed mesh cut by each frame's plane (green), so a reader sees whether the surface
     follows the echo. ``crop`` = ``(column, row, width, height)`` of the frames to show."""
     p2w = sweep.pixel_to_world()
+    shown = crop[2] if crop is not None else sweep.width
+    dilate = mark_dilation(shown, tile_width)
     tiles = []
     for i in frames:
-        im = overlay(sweep.images[i], masks[i], dilate=max(1, sweep.height // 250))
+        im = overlay(sweep.images[i], masks[i], dilate=dilate)
         d = ImageDraw.Draw(im)
-        width = max(2, sweep.width // 300)
+        width = 2 * dilate + 1
         for (a, b) in mesh_section_pixels(mesh, p2w[i]):
             d.line([tuple(a), tuple(b)], fill=(60, 230, 90), width=width)
         if crop is not None:

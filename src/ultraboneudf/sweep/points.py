@@ -88,8 +88,7 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
         if isinstance(masks, (str, os.PathLike)):
             read_options["masks"] = masks
             masks = None
-        with progress.stage("read sweep", None):
-            sweep = read_sweep(sweep, **read_options)
+        sweep = read_sweep(sweep, progress=progress, **read_options)
     elif read_options:
         raise TypeError(f"read options {sorted(read_options)} need a path, not a Sweep")
     if isinstance(masks, (str, os.PathLike)):

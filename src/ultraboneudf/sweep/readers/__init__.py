@@ -12,11 +12,13 @@ matched to the frames by file stem or by order.
 
 from __future__ import annotations
 
+import inspect
 import os
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
 
 from ...errors import InputError
+from ...progress import QUIET, Progress
 from ..model import Sweep
 from . import metaio, nrrd_seq, ultrabones
 
@@ -60,12 +62,15 @@ def is_sweep_path(path: str | os.PathLike) -> bool:
     return detect_layout(p) is not None
 
 
-def read_sweep(path: str | os.PathLike, layout: str | None = None, **options: Any) -> Sweep:
+def read_sweep(path: str | os.PathLike, layout: str | None = None, progress: Progress = QUIET,
+               **options: Any) -> Sweep:
     """Read a tracked sweep in any registered layout.
 
     Args:
         path: a sweep folder or a sequence file.
         layout: force a layout (key of :data:`LAYOUTS`); detected from the path by default.
+        progress: where the reading is reported (frame by frame for a layout that reads frames
+            one at a time).
         **options: passed to the layout's reader (e.g. ``masks=`` for a separate mask stack;
             ``calibration=``, ``transform=``, ``reference=``, ``image_frame=`` for the pose chain of
             MetaIO/NRRD, ``transforms=`` for a NRRD's transform sequences; ``mask_dir=`` for the
@@ -87,8 +92,12 @@ def read_sweep(path: str | os.PathLike, layout: str | None = None, **options: An
                          f".seq.nrrd, or a folder with poses.csv)")
     if name not in LAYOUTS:
         raise InputError(f"unknown sweep layout {name!r}; choose from {', '.join(LAYOUTS)}")
+    read = LAYOUTS[name].read
     try:
-        return LAYOUTS[name].read(p, **options)
+        if "progress" in inspect.signature(read).parameters:
+            return read(p, progress=progress, **options)
+        with progress.stage("read sweep", None):
+            return read(p, **options)
     except TypeError as exc:  # an option this layout does not take
         if "unexpected keyword" in str(exc):
             raise InputError(f"{p}: {exc} (layout {name})") from None

@@ -12,6 +12,7 @@ from PIL import Image, UnidentifiedImageError
 
 from ...errors import InputError
 from ...io import atomic_write_bytes
+from ...progress import QUIET, Progress
 
 IMAGE_SUFFIXES = (".png", ".bmp", ".tif", ".tiff", ".jpg", ".jpeg")
 
@@ -54,9 +55,15 @@ def write_png(path: str | os.PathLike, array: np.ndarray) -> None:
     atomic_write_bytes(path, png_bytes(array))
 
 
-def read_stack(paths: Sequence[Path], size: tuple[int, int] | None = None) -> np.ndarray:
+def read_stack(paths: Sequence[Path], size: tuple[int, int] | None = None,
+               progress: Progress = QUIET) -> np.ndarray:
     """Read frames into ``(F, H, W)``; every frame must have the same size (and ``size`` =
     ``(W, H)`` if given), else :class:`InputError` naming the first differing file."""
+    with progress.stage("read frames", len(paths)) as advance:
+        return _read_stack(paths, size, advance)
+
+
+def _read_stack(paths: Sequence[Path], size: tuple[int, int] | None, advance) -> np.ndarray:
     frames = []
     for p in paths:
         arr = read_image(p)
@@ -67,6 +74,7 @@ def read_stack(paths: Sequence[Path], size: tuple[int, int] | None = None) -> np
                              f"{size[0]}x{size[1]} (the first frame's size, or image_size_px of the "
                              f"calibration)")
         frames.append(arr)
+        advance()
     if not frames:
         return np.zeros((0, 0, 0), dtype=np.uint8)
     return np.stack(frames)

@@ -29,6 +29,7 @@ from ...errors import InputError
 from ...io import atomic_write_bytes, save_json
 from ..model import Sweep
 from ..transforms import check_rigid, euler_from_rigid, invert_rigid, rigid_from_euler
+from ...progress import QUIET, Progress
 from .images import load_mask_stack, read_stack, write_png
 
 POSE_COLUMNS = ("timestamp", "x", "y", "z", "euler_x", "euler_y", "euler_z")
@@ -127,7 +128,7 @@ def _timestamp_value(name: str, index: int) -> float:
 
 
 def read(path: str | os.PathLike, masks: str | os.PathLike | None = None,
-         mask_dir: str = DEFAULT_MASK_DIR, load_images: bool = True) -> Sweep:
+         mask_dir: str = DEFAULT_MASK_DIR, load_images: bool = True, progress: Progress = QUIET) -> Sweep:
     """Read a sweep folder in the UltraBones100k layout.
 
     Args:
@@ -135,6 +136,7 @@ def read(path: str | os.PathLike, masks: str | os.PathLike | None = None,
         masks: explicit masks (folder of PNGs or ``.npy``/``.npz``), overriding ``mask_dir``.
         mask_dir: sub-folder (or ``<mask_dir>.npy`` file) of masks to load when present.
         load_images: read ``frames/`` (set False to read poses and masks only).
+        progress: reports the frames read.
 
     Raises:
         InputError: naming the file, for a missing/unreadable frame, a pose count that differs from
@@ -175,7 +177,7 @@ def read(path: str | os.PathLike, masks: str | os.PathLike | None = None,
 
     size = calib["image_size"]
     if load_images and frame_files:
-        images = read_stack(frame_files, size)
+        images = read_stack(frame_files, size, progress)
         size = (images.shape[2], images.shape[1])
 
     mask_arr = None
