@@ -1,4 +1,4 @@
-"""Compare the extraction modes on exact analytic UDFs (issue #8).
+"""Compare the extraction modes on exact analytic UDFs.
 
 For every field × mode × depth: area / true area, edges with more than two faces, duplicate faces,
 boundary loops, the largest vertex distance to the true surface (in leaf cells) and the wall time.
@@ -6,7 +6,7 @@ boundary loops, the largest vertex distance to the true surface (in leaf cells) 
 Modes:
     faithful-dmu  DualMesh-UDF with the official DMU driver values (§2.11)
     faithful-ubu  DualMesh-UDF as UltraBoneUDF calls it (§1.8)
-    thinned       the first option of issue #8, kept here for comparison only: faithful vertices,
+    thinned       an earlier option, kept here for comparison only: faithful vertices,
                   only leaves whose vertex lies in their own cell, faithful quads and rules,
                   coincident vertices merged, over-shared edges resolved by face-centre UDF
     clean-mass    ``mode="clean"`` with mass-point vertices (``clean_vertex="mass"``)

@@ -1,7 +1,7 @@
 """Every method on the open and the closed femur: CD and HD95 (mm), area ratio, run time, device.
 
 Inputs: ``femur.ply`` whole (closed) and its faces whose normal has a positive z component (open,
-the ultrasound-like view of issue #3); 100,000 area samples of each (mm). Accuracy against the
+the ultrasound-like view of the tests); 100,000 area samples of each (mm). Accuracy against the
 same surface the points were drawn from: CD = ½(mean A→B + mean B→A), HD95 = max of the two
 directed 95th percentiles, over ``--samples`` area samples of each mesh. ``area`` is the mesh area
 over the truth's area: an open truth meshed as a closed or doubled surface shows up as ≈ 2 or more.

@@ -1,8 +1,8 @@
 """End-to-end reconstruction benchmark: seconds per stage, iterations per second, peak memory and
 Chamfer distance, per preset and device.
 
-Input: the open femur of issue #3 — the faces of ``femur.ply`` whose normal has a positive z
-component, 100,000 area samples (mm) — or the built-in phantom. Accuracy: CD = ½(mean A→B + mean B→A)
+Input: the open femur of the tests and the README, the faces of ``femur.ply`` whose normal has a
+positive z component, 100,000 area samples (mm) — or the built-in phantom. Accuracy: CD = ½(mean A→B + mean B→A)
 nearest-neighbour distance over ``--samples`` area samples of each mesh, HD95 = max of the two
 directed 95th percentiles (mm).
 
@@ -88,7 +88,7 @@ def run_one(args: argparse.Namespace) -> list[dict]:
 
 
 def reextract(rec, truth, spec: str, samples: int) -> dict:
-    """The same trained field extracted again as ``MODE@DEPTH`` or ``MODE@DEPTH@TRIM_MM`` (issue #8:
+    """The same trained field extracted again as ``MODE@DEPTH`` or ``MODE@DEPTH@TRIM_MM`` (the
     modes side by side); without a trim value the preset's ``extract.trim_mm`` applies."""
     from ultraboneudf.extraction import mesh_quality
 

@@ -1,4 +1,4 @@
-"""Clean extraction mode (issue #8) and the mesh-quality figures, on exact analytic UDFs.
+"""Clean extraction mode and the mesh-quality figures, on exact analytic UDFs.
 
 Evidence asked for by the issue, per field and depth: area within 2 % of the true area, no edge
 with more than two faces, no duplicate faces, one boundary loop for the disc and none for the

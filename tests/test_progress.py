@@ -36,42 +36,42 @@ def test_lines_come_at_most_once_per_interval_and_quiet_prints_nothing():
     assert quiet.getvalue() == ""
 
 
-def test_training_prints_one_estimate_after_its_first_seconds(monkeypatch):
+def _estimates(monkeypatch, iters, step_s, after_s, steps=None, steady_from=0):
+    """The lines a training log prints over ``steps`` steps whose ``i``-th takes ``step_s(i)`` seconds
+    of a fake clock (``ESTIMATE_AFTER_S`` = ``after_s``)."""
     import torch
 
     from ultraboneudf import training
 
-    monkeypatch.setattr(training, "ESTIMATE_AFTER_S", 0.05)
+    clock = [0.0]
+    monkeypatch.setattr(training, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
+    monkeypatch.setattr(training, "ESTIMATE_AFTER_S", after_s)
     out = io.StringIO()
-    progress = Progress(stream=out, interval=3600.0)
-    clock = iter(range(1000))
-    monkeypatch.setattr(training, "time", SimpleNamespace(perf_counter=lambda: 0.01 * next(clock)))
-    with progress.stage("training", 400) as advance:
-        log = training.LoopLog(400, advance, torch.device("cpu"), 100, lr=1e-3, progress=progress)
-        for i in range(400):
-            log.step(i, {"total": torch.tensor(1.0)})
-    lines = [ln for ln in out.getvalue().splitlines() if ln.startswith("estimate:")]
+    log = training.LoopLog(iters, lambda n: None, torch.device("cpu"), 100,
+                           progress=Progress(stream=out, interval=3600.0), steady_from=steady_from)
+    for i in range(iters if steps is None else steps):
+        clock[0] += step_s(i)
+        log.step(i, {"total": torch.tensor(1.0)})
+    return [ln for ln in out.getvalue().splitlines() if ln.startswith("estimate:")]
+
+
+def test_training_prints_one_estimate_after_its_first_seconds(monkeypatch):
+    lines = _estimates(monkeypatch, 400, lambda i: 0.01, 0.05)
     assert len(lines) == 1
     assert "training takes about 4 s on this CPU (400 steps at 10 ms each)" in lines[0]
     assert "robust preset" not in lines[0]         # named only when the run is long
 
 
 def test_a_long_cpu_run_names_the_faster_preset(monkeypatch):
-    import torch
+    lines = _estimates(monkeypatch, 30_000, lambda i: 0.12, 0.5, steps=12)
+    assert lines[0].startswith("estimate: training takes about 60 min on this CPU (30,000 steps at 120 ms")
+    assert "robust preset (the default)" in lines[0]
 
-    from ultraboneudf import training
 
-    monkeypatch.setattr(training, "ESTIMATE_AFTER_S", 0.5)
-    out = io.StringIO()
-    progress = Progress(stream=out, interval=3600.0)
-    clock = iter(range(100))
-    monkeypatch.setattr(training, "time", SimpleNamespace(perf_counter=lambda: 0.12 * next(clock)))
-    log = training.LoopLog(30_000, lambda n: None, torch.device("cpu"), 100, progress=progress)
-    for i in range(12):
-        log.step(i, {"total": torch.tensor(1.0)})
-    line = out.getvalue().strip()
-    assert line.startswith("estimate: training takes about 60 min on this CPU (30,000 steps at 120 ms")
-    assert "robust preset (the default)" in line
+def test_the_estimate_waits_for_the_main_loss(monkeypatch):
+    """Warm-start steps are cheaper: the pace is measured on the steps after them."""
+    lines = _estimates(monkeypatch, 200, lambda i: 0.001 if i < 100 else 0.01, 0.05, steady_from=100)
+    assert len(lines) == 1 and "(200 steps at 10 ms each)" in lines[0]
 
 
 def test_tree_distances_report_their_rows_and_give_the_same_answer():

@@ -385,7 +385,7 @@ def _paper() -> Config:
     cfg.extract = ExtractConfig(**{**DMU_DEFAULTS, "max_depth": 9})
     # Without grid queries the far field is free to overestimate; test the band from 0.125-unit cells.
     cfg.extract.band_start_depth = 4
-    cfg.extract.mode = "clean"  # one-layer, edge-manifold mesh (issue #8); "faithful" reproduces DMU
+    cfg.extract.mode = "clean"  # one-layer, edge-manifold mesh; "faithful" reproduces DMU
     cfg.extract.trim_mm = 3.0   # no surface > 3 mm from the data (README, "Support trim")
     cfg.extract.clean_project_steps = 0  # see _fast
     return cfg
@@ -394,7 +394,7 @@ def _paper() -> Config:
 def _fast() -> Config:
     """Designed for a 100k-point cloud on a 2-core CPU (see README, "Presets").
 
-    Measured on the open femur (issue #3 input). What limits a short run is the number of optimiser
+    Measured on the open femur (the input of the tests and the README). What limits a short run is the number of optimiser
     steps: the tangent loss grows the zero set outward from the initial sphere, and 2,000 steps ×
     2,000 queries left the epiphyses without one (CD 3.4 mm). A warm start (1,000 steps regressing
     u on the distance to P) puts a zero set near every part of the bone first; without it one seed

@@ -1,23 +1,46 @@
-"""Loss terms (§1.6): small pure functions of tensors. Distances are in unit space."""
+"""Loss terms (§1.6): small pure functions of tensors. Distances are in unit space.
+
+The per-query terms reduce over the last axis, so the same function serves one scan (values
+``(M,)`` → a scalar) and K scans trained together (``(K, M)`` → ``(K,)``); ``mask`` (same shape,
+1 = a real entry) lets scans with different counts share one padded tensor.
+"""
 
 from __future__ import annotations
 
 import torch
 
 
+def _mean(x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean over the last axis, of the entries ``mask`` keeps (all when ``None``)."""
+    if mask is None:
+        return x.mean(dim=-1)
+    return (x * mask).sum(dim=-1) / mask.sum(dim=-1)
+
+
 def tangent_residual(q: torch.Tensor, u: torch.Tensor, g_hat: torch.Tensor, foot: torch.Tensor) -> torch.Tensor:
-    """``r(q) = ĝ(q)·(q − f(q')) − u(q)`` (M,): signed distance from ``q`` to the plane through the
+    """``r(q) = ĝ(q)·(q − f(q')) − u(q)`` (…, M): signed distance from ``q`` to the plane through the
     dynamic nearest surface point ``foot`` with normal ``ĝ``, minus the predicted distance (Eq. 6)."""
-    return (g_hat * (q - foot)).sum(dim=1) - u
+    return (g_hat * (q - foot)).sum(dim=-1) - u
 
 
 def tangent_loss(residual: torch.Tensor, norm: str) -> torch.Tensor:
     """Mean ``|r|`` (``l1``, the official code) or mean ``r²`` (``l2``, the paper's Eq. 6)."""
     if norm == "l1":
-        return residual.abs().mean()
+        return _mean(residual.abs())
     if norm == "l2":
-        return residual.square().mean()
+        return _mean(residual.square())
     raise ValueError(f"unknown tangent norm {norm!r}")
+
+
+def warm_start_loss(u: torch.Tensor, distance: torch.Tensor) -> torch.Tensor:
+    """``mean |u(q) − d(q)|``: the warm start's regression on the static distance target."""
+    return _mean((u - distance).abs())
+
+
+def far_field_loss(u: torch.Tensor, distance: torch.Tensor, threshold: float) -> torch.Tensor:
+    """``mean |u(q) − d(q)|·[d(q) > threshold]`` over all the batch's queries: the far-field term
+    (``loss.lambda_far``), which leaves the queries near the data to the main loss."""
+    return _mean((u - distance).abs() * (distance > threshold))
 
 
 def pull_loss(moved: torch.Tensor, target: torch.Tensor, norm: str = "squared") -> torch.Tensor:
@@ -76,21 +99,23 @@ def lsgan_generator_loss(d_fake: torch.Tensor) -> torch.Tensor:
     return (d_fake - 1.0).square().mean()
 
 
-def global_shape_loss(u_anchor: torch.Tensor, target: torch.Tensor, form: str = "per_anchor") -> torch.Tensor:
-    """``L_GS`` of the anchors' outputs (G,) against their targets (G,): ``per_anchor``, the mean
+def global_shape_loss(u_anchor: torch.Tensor, target: torch.Tensor, form: str = "per_anchor",
+                      mask: torch.Tensor | None = None) -> torch.Tensor:
+    """``L_GS`` of the anchors' outputs (…, G) against their targets (…, G): ``per_anchor``, the mean
     squared error (Eq. 7); ``broadcast``, the mean over all G × G output–target pairs, as the
     reference's ``nn.MSELoss`` of (G, 1) against (G,) computes it, in its closed form
     ``mean (u − mean t)² + var t`` (O(G) instead of G² memory)."""
     if form == "per_anchor":
-        return (u_anchor - target).square().mean()
+        return _mean((u_anchor - target).square(), mask)
     if form == "broadcast":
-        return (u_anchor - target.mean()).square().mean() + target.var(unbiased=False)
+        mean_t = _mean(target, mask)[..., None]
+        return _mean((u_anchor - mean_t).square(), mask) + _mean((target - mean_t).square(), mask)
     raise ValueError(f"unknown L_GS form {form!r}")
 
 
-def on_surface_loss(u_surface: torch.Tensor) -> torch.Tensor:
+def on_surface_loss(u_surface: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
     """``L_OS = mean u(p)²`` over the surface rows (Eq. 9)."""
-    return u_surface.square().mean()
+    return _mean(u_surface.square(), mask)
 
 
 def eikonal_loss(*grads: torch.Tensor) -> torch.Tensor:

@@ -21,6 +21,7 @@ import trimesh
 
 from ._version import __version__
 from .config import DEFAULT_PRESET, Config, DataConfig, ExtractConfig, apply_overrides, preset as make_preset, validate
+from .devices import resolve_device
 from .errors import FitWarning, InputError
 from .extraction import data_fit, extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
@@ -32,7 +33,6 @@ from .io import check_outputs, check_units, save_mesh_with_sidecar, validate_poi
 from .methods import Fitted, get_method
 from .methods import ultraboneudf as ubu
 from .progress import Progress
-from .training_many import train_many
 
 
 @dataclass
@@ -141,21 +141,6 @@ class Reconstruction:
         return save_mesh_with_sidecar(self.mesh, path, self.sidecar())
 
 
-def resolve_device(device: str | torch.device) -> torch.device:
-    """``auto`` → CUDA if available, else CPU; anything else must be usable here."""
-    if str(device) == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError):
-        raise InputError(f"unknown device {str(device)!r}; use auto, cpu, cuda or cuda:N") from None
-    if dev.type not in ("cpu", "cuda"):
-        raise InputError(f"device {str(device)!r} is not supported; use auto, cpu, cuda or cuda:N")
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("device 'cuda' requested but no CUDA device is available (use --device cpu)")
-    return dev
-
-
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed % 2**32)
@@ -234,25 +219,15 @@ def reconstruct_many(clouds_mm: Sequence[Any], preset: str = DEFAULT_PRESET, dev
         raise InputError("reconstruct_many needs at least one cloud and one source name per cloud")
     cfg, _ = configure(preset, "ultraboneudf", None, overrides, assignments)
     dev = resolve_device(device)
-    units, datas, stages, prep = [], [], [], []
+    units = []
     for cloud, name in zip(clouds, names):
         seed_everything(seed)
         cloud = validate_points(cloud, source=name)
         check_units(cloud, name)
-        unit = _to_unit(cloud, None, cfg, seed, name)
-        t0 = time.perf_counter()
-        stage: dict[str, float] = {}
-        datas.append(ubu.prepare(unit.points, cfg, dev, seed, progress, timings=stage, planes=unit.planes))
-        prep.append(time.perf_counter() - t0)
-        units.append(unit)
-        stages.append(stage)
-    nets = [ubu.build_network(cfg, seed, dev) for _ in clouds]
-    trained, results = train_many(nets, datas, cfg.loss, cfg.train, [seed] * len(clouds), progress)
-    out = []
-    for k, unit in enumerate(units):
-        fitted = ubu.fitted_field(trained[k], datas[k], prep[k], results[k].seconds, stages[k],
-                                  results[k].history)
-        out.append(_finish(fitted, unit, cfg, dev, progress, "ultraboneudf", preset, seed, t_start))
+        units.append(_to_unit(cloud, None, cfg, seed, name))
+    fitted = ubu.fit_many([u.points for u in units], cfg, dev, seed, progress, [u.planes for u in units])
+    out = [_finish(f, unit, cfg, dev, progress, "ultraboneudf", preset, seed, t_start)
+           for f, unit in zip(fitted, units)]
     for rec, name in zip(out, names):
         rec.timings["total_s"] = time.perf_counter() - t_start   # the batch's wall time, shared
         _warn_fit(rec, name)

@@ -21,8 +21,8 @@ from .errors import InputError
 from .fields.base import normalize
 from .fields.mlp import value_and_grad
 from .geometry.neighbors import NearestIndex
-from .losses import (consistency_chamfer_loss, eikonal_loss, global_shape_loss, on_surface_loss,
-                     pull_loss, tangent_loss, tangent_residual)
+from .losses import (consistency_chamfer_loss, eikonal_loss, far_field_loss, global_shape_loss,
+                     on_surface_loss, pull_loss, tangent_loss, tangent_residual, warm_start_loss)
 from .progress import QUIET, Progress
 
 
@@ -133,12 +133,14 @@ class LoopLog:
     """Bookkeeping shared by the training loops: the loss terms every ``log_every`` steps (and the
     last) kept as device tensors and read once at the end, progress ticks, the wall time of the
     loop, synchronised with the device, and one line through ``progress`` after the first seconds
-    of steady steps with the time the training will take at that pace."""
+    of steady steps with the time the training will take at that pace. ``steady_from``: the first
+    step of the main loss (the warm-start steps before it are cheaper and would flatter the pace)."""
 
     def __init__(self, iters: int, advance: Callable[[float], None], device: torch.device,
-                 log_every: int, lr: float | None = None, progress: Progress = QUIET) -> None:
+                 log_every: int, lr: float | None = None, progress: Progress = QUIET,
+                 steady_from: int = 0) -> None:
         self.iters, self.advance, self.device, self.log_every = iters, advance, device, log_every
-        self.lr, self.progress = lr, progress
+        self.lr, self.progress, self.steady_from = lr, progress, steady_from
         self.tick = max(1, min(50, iters // 100))
         self.terms: dict[str, list[torch.Tensor]] = {}
         self.start = time.perf_counter()
@@ -161,7 +163,7 @@ class LoopLog:
             self._estimate(i)
 
     def _estimate(self, i: int) -> None:
-        first = min(4, self.iters - 1)
+        first = min(self.steady_from + 4, self.iters - 1)
         if i < first:
             return
         now = time.perf_counter()
@@ -215,7 +217,7 @@ def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: Train
     ``mean |u(q) − d(q)|`` (``d``: ``data.static_distance``, ``loss.distance_target``) replaces the
     main loss."""
     if warm:
-        terms = {"warm": (net(q) - data.static_distance[batch]).abs().mean()}
+        terms = {"warm": warm_start_loss(net(q), data.static_distance[batch])}
         return _with_regularisers(net, data, cfg, terms, terms["warm"], None, anchor_rows, explicit,
                                   surface_rows)
     u, g = value_and_grad(net, q, create_graph=True, explicit=explicit)
@@ -227,8 +229,7 @@ def loss_terms(net: nn.Module, q: torch.Tensor, batch: torch.Tensor, data: Train
         terms["tangent"] = tangent_loss(tangent_residual(q, u, g_hat, foot), cfg.tangent_norm)
         total = cfg.lambda_tangent * terms["tangent"]
         if cfg.lambda_far:
-            d = data.static_distance[batch]
-            terms["far"] = ((u - d).abs() * (d > cfg.far_threshold)).mean()
+            terms["far"] = far_field_loss(u, data.static_distance[batch], cfg.far_threshold)
             total = total + cfg.lambda_far * terms["far"]
     elif cfg.kind == "pull":
         terms["pull"] = pull_loss(moved, data.static_targets[batch], cfg.pull_norm)
@@ -310,7 +311,10 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     net.train()
     threads = train_cfg.threads if device.type == "cpu" else 0
     with cpu_threads(threads), progress.stage("training", iters) as advance:
-        log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr, progress=progress)
+        # the pace of the last phase: after the warm start, and after CAP-UDF's larger second batch
+        steady = max(warm_steps, train_cfg.expand_at if expand is not None else 0)
+        log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr, progress=progress,
+                      steady_from=steady)
         for i in range(iters):
             if expand is not None and train_cfg.expand_at > 0 and i == train_cfg.expand_at:
                 net.eval()

@@ -1,4 +1,4 @@
-"""Several scans trained at once: K independent UltraBoneUDF fields in one process (issue #7).
+"""Several scans trained at once: K independent UltraBoneUDF fields in one process.
 
 At the ``fast`` preset's batch of 250 queries a training step is mostly fixed overhead (operator
 dispatch, the optimiser, the nearest-neighbour call), not arithmetic. Stacking the K networks'
@@ -15,6 +15,8 @@ Supported: the tangent loss with ``L_GS``, ``L_OS``, the warm start and the far-
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from torch import nn
 
@@ -23,6 +25,7 @@ from .errors import InputError
 from .fields.base import normalize
 from .fields.mlp import DistanceMLP
 from .geometry.neighbors import NearestIndex
+from .losses import far_field_loss, global_shape_loss, tangent_loss, tangent_residual, warm_start_loss
 from .progress import QUIET, Progress
 from .training import SAMPLERS, LoopLog, TrainingData, TrainResult, cpu_threads, learning_rate, make_optimizer
 
@@ -86,22 +89,16 @@ class StackedMLP(nn.Module):
         return u, d
 
     def unstack(self, template: DistanceMLP) -> list[DistanceMLP]:
-        """K separate networks (copies of ``template``'s structure) holding the trained weights."""
+        """K separate networks (copies of ``template``) holding the trained weights."""
         nets = []
         for k in range(self.v[0].shape[0]):
-            net = DistanceMLP.__new__(DistanceMLP)
-            nn.Module.__init__(net)
-            net.skip, net.abs_output = template.skip, template.abs_output
-            net.layers = nn.ModuleList()
-            for layer, v, g, b in zip(template.layers, self.v, self.g, self.bias):
-                copy = type(layer).__new__(type(layer))
-                nn.Module.__init__(copy)
-                copy.weight_norm = layer.weight_norm
-                copy.v = nn.Parameter(v[k].detach().clone())
-                copy.bias = nn.Parameter(b[k].detach().clone())
-                if layer.weight_norm:
-                    copy.g = nn.Parameter(g[k].detach().clone())
-                net.layers.append(copy)
+            net = copy.deepcopy(template)
+            with torch.no_grad():
+                for layer, v, g, b in zip(net.layers, self.v, self.g, self.bias):
+                    layer.v.copy_(v[k])
+                    layer.bias.copy_(b[k])
+                    if layer.weight_norm:
+                        layer.g.copy_(g[k])
             nets.append(net.to(self.v[0].device).eval())
         return nets
 
@@ -142,7 +139,8 @@ def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: Los
     stacked.train()
     threads = train_cfg.threads if device.type == "cpu" else 0
     with cpu_threads(threads), progress.stage("training", iters) as advance:
-        log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr, progress=progress)
+        log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr, progress=progress,
+                      steady_from=warm_steps)
         for i in range(iters):
             for group in opt.param_groups:
                 group["lr"] = learning_rate(i, train_cfg.lr, train_cfg.warmup, iters)
@@ -192,16 +190,10 @@ class _Targets:
                     for c, g, p in zip(self.counts, generators, self.point_list)]
             pts = torch.stack([p[r] for p, r in zip(self.point_list, rows)])
             tgt = torch.stack([t[r] for t, r in zip(self.target_list, rows)])
-            mask = torch.ones_like(tgt)
+            mask = None
         else:
             pts, tgt, mask = self.points, self.targets, self.mask
-        count = mask.sum(dim=1)
-        u = net(pts, weights)
-        if self.form == "per_anchor":
-            return ((u - tgt).square() * mask).sum(dim=1) / count
-        mean_t = (tgt * mask).sum(dim=1) / count
-        var_t = ((tgt - mean_t[:, None]).square() * mask).sum(dim=1) / count
-        return ((u - mean_t[:, None]).square() * mask).sum(dim=1) / count + var_t
+        return global_shape_loss(net(pts, weights), tgt, self.form, mask)
 
 
 def _loss_terms(net: StackedMLP, datas: list[TrainingData], rows: list[torch.Tensor],
@@ -213,7 +205,7 @@ def _loss_terms(net: StackedMLP, datas: list[TrainingData], rows: list[torch.Ten
     terms: dict[str, torch.Tensor] = {}
     if warm:
         dist = torch.stack([d.static_distance[r] for d, r in zip(datas, rows)])
-        terms["warm"] = (net(q, weights) - dist).abs().mean(dim=1)
+        terms["warm"] = warm_start_loss(net(q, weights), dist)
         total = terms["warm"]
     else:
         u, g = net.value_and_grad(q, weights)
@@ -221,30 +213,20 @@ def _loss_terms(net: StackedMLP, datas: list[TrainingData], rows: list[torch.Ten
         moved = q - u[..., None] * g_hat
         foot = torch.stack([d.surface[ix.query(m).to(d.surface.device)]
                             for d, ix, m in zip(datas, indices, moved)])
-        residual = (g_hat * (q - foot)).sum(dim=2) - u
-        terms["tangent"] = _batched_tangent(residual, cfg.tangent_norm)
+        terms["tangent"] = tangent_loss(tangent_residual(q, u, g_hat, foot), cfg.tangent_norm)
         total = cfg.lambda_tangent * terms["tangent"]
         if cfg.lambda_far:
             dist = torch.stack([d.static_distance[r] for d, r in zip(datas, rows)])
-            terms["far"] = ((u - dist).abs() * (dist > cfg.far_threshold)).mean(dim=1)
+            terms["far"] = far_field_loss(u, dist, cfg.far_threshold)
             total = total + cfg.lambda_far * terms["far"]
     if anchors is not None:
         terms["gs"] = anchors.loss(net, weights, generators)
         total = total + cfg.lambda_gs * terms["gs"]
     if on_surface is not None:
-        terms["os"] = on_surface.loss(net, weights, generators)
+        terms["os"] = on_surface.loss(net, weights, generators)  # zero targets: mean u², Eq. 9
         total = total + cfg.lambda_os * terms["os"]
     terms["total"] = total
     return terms
-
-
-def _batched_tangent(residual: torch.Tensor, norm: str) -> torch.Tensor:
-    """Per-scan tangent loss (K,) of residuals (K, B): mean |r| (``l1``) or mean r² (``l2``)."""
-    if norm == "l1":
-        return residual.abs().mean(dim=1)
-    if norm == "l2":
-        return residual.square().mean(dim=1)
-    raise ValueError(f"unknown tangent norm {norm!r}")
 
 
 __all__ = ["StackedMLP", "train_many"]

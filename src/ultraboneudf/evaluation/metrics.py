@@ -219,17 +219,6 @@ def _failure(reason: str, gt: GroundTruth, samples: int, device: str,
                       device=device, timings=timings, **none)
 
 
-def _resolve_device(device: str) -> str:
-    if device == "auto":
-        try:
-            import torch
-
-            return "cuda" if torch.cuda.is_available() else "cpu"
-        except ImportError:  # pragma: no cover - torch is a core dependency
-            return "cpu"
-    return device
-
-
 def evaluate(recon: Optional[MeshLike], gt: Union[MeshLike, GroundTruth],
              raw_points: Optional[np.ndarray] = None, pseudo_gt_mm: Optional[float] = None,
              samples: int = DEFAULT_SAMPLES, seed: int = 0, workers: int = -1,
@@ -259,7 +248,9 @@ def evaluate(recon: Optional[MeshLike], gt: Union[MeshLike, GroundTruth],
     gt_source:
         Name of the ground truth in error messages (e.g. its file).
     """
-    device = _resolve_device(device)
+    from ..devices import resolve_device  # torch only when evaluating
+
+    device = str(resolve_device(device))
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
     if isinstance(gt, GroundTruth):

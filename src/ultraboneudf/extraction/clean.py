@@ -1,4 +1,4 @@
-"""Clean extraction: one layer of surface with every edge shared by at most two faces (issue #8).
+"""Clean extraction: one layer of surface with every edge shared by at most two faces.
 
 Why the faithful extractor is not clean: its band is about three leaf cells thick and every
 vertex-owning cell of it takes part in quads, so a sheet comes out as stacked, folded layers

@@ -117,6 +117,27 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     return fitted_field(net, data, prep_s, result.seconds, stages, result.history)
 
 
+def fit_many(clouds: list[np.ndarray], cfg: Config, device: torch.device, seed: int,
+             progress: Progress = QUIET, planes: list[LocalPlanes | None] | None = None) -> list[Fitted]:
+    """:func:`fit` for several unit-space clouds at once: each is prepared on its own, then their
+    fields train together in one batched loop (:func:`~ultraboneudf.training_many.train_many`,
+    equal step for step to separate runs); ``train_s`` is the batch's."""
+    from ..training_many import train_many
+
+    planes = planes if planes is not None else [None] * len(clouds)
+    datas, prep, stages = [], [], []
+    for points, own in zip(clouds, planes):
+        t0 = time.perf_counter()
+        stage: dict[str, float] = {}
+        datas.append(prepare(points, cfg, device, seed, progress, timings=stage, planes=own))
+        prep.append(time.perf_counter() - t0)
+        stages.append(stage)
+    nets = [build_network(cfg, seed, device) for _ in clouds]
+    trained, results = train_many(nets, datas, cfg.loss, cfg.train, [seed] * len(clouds), progress)
+    return [fitted_field(net, data, p, r.seconds, st, r.history)
+            for net, data, p, r, st in zip(trained, datas, prep, results, stages)]
+
+
 def fitted_field(net: torch.nn.Module, data: TrainingData, prep_s: float, train_s: float,
                  stages: dict[str, float], history: dict[str, list[float]]) -> Fitted:
     """The :class:`Fitted` of a trained network: its field, counts and timings."""
