@@ -178,9 +178,9 @@ class LoopLog:
         self._estimated = True
         pace = (now - self._steady) / (i - first)
         left = pace * (self.iters - 1 - i)
-        line = (f"estimate: training takes about {_duration(now - self.start + left)} on this "
-                f"{'CPU' if self.device.type == 'cpu' else 'GPU'} ({self.iters:,} steps at {_duration(pace, fine=True)} each); "
-                f"then the mesh is extracted")
+        where = "CPU" if self.device.type == "cpu" else "GPU"
+        line = (f"estimate: training takes about {_duration(now - self.start + left)} on this {where} "
+                f"({self.iters:,} steps at {_duration(pace, fine=True)} each); then the mesh is extracted")
         if self.device.type == "cpu" and left > SLOW_RUN_S:
             line += ("; the robust preset (the default) takes about a minute for 100,000 points on a "
                      "CPU, a GPU runs this preset in minutes")
