@@ -79,3 +79,53 @@ def test_atomic_writes_leave_no_partial_file(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.ply"]
     with pytest.raises(InputError, match="unknown mesh extension"):
         save_mesh(mesh, tmp_path / "m.vtk")
+
+
+def _ply_header(n, fmt="ascii 1.0"):
+    return (f"ply\nformat {fmt}\nelement vertex {n}\nproperty float x\nproperty float y\n"
+            f"property float z\nend_header\n")
+
+
+def test_a_ply_that_ends_before_its_declared_vertices_is_refused(tmp_path):
+    pts = np.random.default_rng(0).random((100, 3)) * 50
+    ascii_ply = tmp_path / "short.ply"
+    ascii_ply.write_text(_ply_header(1000) + "\n".join(" ".join(map(str, p)) for p in pts) + "\n")
+    with pytest.raises(InputError, match=r"short.ply: the header declares 1,000 vertices but the file holds 100"):
+        load_points(ascii_ply)
+    binary = tmp_path / "short_bin.ply"
+    binary.write_bytes(_ply_header(1000, "binary_little_endian 1.0").encode() + pts.astype("<f4").tobytes())
+    with pytest.raises(InputError, match=r"declares 1,000 vertices \(12,000 bytes\) but the file holds 1,200 bytes"):
+        load_points(binary)
+
+
+def test_a_ply_header_declaring_a_billion_vertices_is_refused_before_reading(tmp_path):
+    bomb = tmp_path / "bomb.ply"
+    bomb.write_bytes(_ply_header(10**9, "binary_little_endian 1.0").encode() + b"\0" * 1200)
+    with pytest.raises(InputError, match="declares 1,000,000,000 vertices, more than the limit"):
+        load_points(bomb)
+    not_ply = tmp_path / "fake.ply"
+    not_ply.write_text("solid nothing\n")
+    with pytest.raises(InputError, match="fake.ply: not a PLY file"):
+        load_points(not_ply)
+
+
+def test_coordinates_beyond_a_kilometre_are_refused_before_the_numerics():
+    pts = np.random.default_rng(0).random((500, 3)) * 50
+    pts[3] = 1e30
+    with pytest.raises(InputError, match=r"scan.xyz: 1 point\(s\) have a coordinate beyond ±10⁶ mm"):
+        validate_points(pts, source="scan.xyz")
+
+
+def test_an_os_error_while_reading_is_one_line(tmp_path, monkeypatch):
+    """Permission denied cannot be produced as root (CI): the reader's OSError is raised here."""
+    from ultraboneudf import io as uio
+
+    path = tmp_path / "locked.xyz"
+    np.savetxt(path, _cloud())
+
+    def denied(p):
+        raise PermissionError(13, "Permission denied", str(p))
+
+    monkeypatch.setitem(uio.POINT_READERS, ".xyz", denied)
+    with pytest.raises(InputError, match=r"locked.xyz: cannot read the file \(Permission denied\)"):
+        load_points(path)

@@ -101,3 +101,13 @@ def test_reading_frames_reports_each_frame(tmp_path):
     stack = read_stack(paths, progress=Progress(stream=out, interval=0.0))
     assert stack.shape == (3, 4, 5) and stack[2, 0, 0] == 20
     assert "read frames: 3/3 (100%)" in out.getvalue().splitlines()[-1]
+
+
+def test_a_resumed_stage_counts_its_pace_from_the_resumed_steps_only():
+    assert time_left(10.0, 150, 300, start=100) == pytest.approx(30.0)   # 50 steps in 10 s, 150 left
+    assert time_left(10.0, 100, 300, start=100) is None
+    out = io.StringIO()
+    with Progress(stream=out, interval=0.0).stage("training", 300, start=150) as advance:
+        advance(30)
+    first = out.getvalue().splitlines()[0]
+    assert first.startswith("training: 180/300 (60%)")

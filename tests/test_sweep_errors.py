@@ -179,3 +179,16 @@ def test_metaio_more_pixels_than_dimsize_is_an_error(tmp_path, capsys):
     p = _mha(tmp_path / "f.mha", [np.diag([0.1, 0.1, 1.0, 1.0])] * 2, frames=2)
     p.write_bytes(p.read_bytes() + bytes(12))    # half a frame more than DimSize says
     expect_error(p, "f.mha", "more pixel data than DimSize", capsys, tmp_path)
+
+
+def test_nrrd_samples_beyond_the_limit_are_refused_before_reading(tmp_path, capsys, monkeypatch):
+    import nrrd
+
+    vol = np.zeros((8, 5, 1, 3), dtype=np.uint16)                    # 240 bytes
+    nrrd.write(str(tmp_path / "big.seq.nrrd"), vol, {"kinds": ["domain", "domain", "domain", "list"],
+                                                      "encoding": "gzip"})
+    monkeypatch.setattr(metaio, "MAX_PIXEL_BYTES", 200)
+    expect_error(tmp_path / "big.seq.nrrd", "big.seq.nrrd", "declares .* GiB of samples .* ULTRABONEUDF_MAX_PIXEL_BYTES",
+                 capsys, tmp_path)
+    monkeypatch.setattr(metaio, "MAX_PIXEL_BYTES", 240)              # at the limit: read, then its own errors
+    expect_error(tmp_path / "big.seq.nrrd", "big.seq.nrrd", "no per-frame transforms", capsys, tmp_path)

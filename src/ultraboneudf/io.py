@@ -54,6 +54,11 @@ def validate_points(points: Any, source: str = "points", min_points: int = MIN_P
         first = int(np.flatnonzero(bad)[0])
         raise InputError(f"{source}: {int(bad.sum())} point(s) contain NaN or Inf "
                          f"(first at point {first})")
+    far = np.abs(arr).max(axis=1) >= MAX_COORDINATE_MM  # before any numerics: 1e30 overflows them
+    if far.any():
+        raise InputError(f"{source}: {int(far.sum())} point(s) have a coordinate beyond ±10⁶ mm (1 km), "
+                         f"e.g. point {int(np.flatnonzero(far)[0])}: {arr[far][0].tolist()}; the points "
+                         f"cannot be a bone scan in mm")
     if len(arr) < min_points:
         raise InputError(f"{source}: only {len(arr)} points; at least {min_points} are needed")
     centred = arr - arr.mean(axis=0)
@@ -166,7 +171,49 @@ def _read_csv(path: Path) -> np.ndarray:
     return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
 
 
+MAX_PLY_VERTICES = int(os.environ.get("ULTRABONEUDF_MAX_PLY_VERTICES", 500_000_000))
+"""A PLY header declaring more vertices than this is refused before anything is allocated."""
+
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
+              "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
+              "double": 8, "float64": 8}
+
+
+def _ply_header(path: Path) -> tuple[str, int, int | None, int]:
+    """``(format, declared vertices, bytes per vertex or None (a list property), header bytes)`` of
+    a PLY file, read from its header alone."""
+    with open(path, "rb") as fh:
+        head = fh.read(65536)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        raise InputError(f"{path}: not a PLY file (no 'ply' magic or no end_header in the first 64 KiB)")
+    header_bytes = head.find(b"\n", end) + 1
+    fmt, vertices, row, element = "", 0, 0, None
+    for line in head[:end].decode("ascii", errors="replace").splitlines():
+        words = line.split()
+        if words[:1] == ["format"] and len(words) > 1:
+            fmt = words[1]
+        elif words[:1] == ["element"] and len(words) == 3:
+            element = words[1]
+            if element == "vertex":
+                try:
+                    vertices = int(words[2])
+                except ValueError:
+                    raise InputError(f"{path}: bad vertex count {words[2]!r} in the PLY header") from None
+        elif words[:1] == ["property"] and element == "vertex" and row is not None:
+            row = None if words[1:2] == ["list"] else row + _PLY_SIZES.get(words[1], 0)
+    return fmt, vertices, row, header_bytes
+
+
 def _read_ply(path: Path) -> np.ndarray:
+    fmt, declared, row, header_bytes = _ply_header(path)
+    if declared > MAX_PLY_VERTICES:
+        raise InputError(f"{path}: the header declares {declared:,} vertices, more than the limit of "
+                         f"{MAX_PLY_VERTICES:,} (ULTRABONEUDF_MAX_PLY_VERTICES)")
+    if fmt.startswith("binary") and row and path.stat().st_size < header_bytes + declared * row:
+        raise InputError(f"{path}: the header declares {declared:,} vertices ({declared * row:,} bytes) but "
+                         f"the file holds {path.stat().st_size - header_bytes:,} bytes after its header "
+                         f"(truncated?)")
     try:
         geom = trimesh.load(path, process=False)
     except Exception as exc:  # trimesh raises many types for corrupt files
@@ -174,6 +221,9 @@ def _read_ply(path: Path) -> np.ndarray:
     vertices = getattr(geom, "vertices", None)
     if vertices is None:
         raise InputError(f"{path}: the PLY file holds no vertices")
+    if len(vertices) != declared:
+        raise InputError(f"{path}: the header declares {declared:,} vertices but the file holds "
+                         f"{len(vertices):,} (truncated?)")
     return np.asarray(vertices, dtype=np.float64)
 
 
@@ -216,7 +266,11 @@ def load_points(path: str | os.PathLike, min_points: int = MIN_POINTS) -> np.nda
     if reader is None:
         raise InputError(f"{path}: unknown point cloud extension {path.suffix!r}; "
                          f"supported: {', '.join(POINT_READERS)}")
-    return validate_points(reader(path), source=str(path), min_points=min_points)
+    try:
+        points = reader(path)
+    except OSError as exc:  # permission denied, an I/O error: one line, not a traceback
+        raise InputError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
+    return validate_points(points, source=str(path), min_points=min_points)
 
 
 # --------------------------------------------------------------------------------------------

@@ -20,6 +20,7 @@ import torch
 import trimesh
 
 from ._version import __version__
+from .checkpoints import Checkpoint
 from .config import DEFAULT_PRESET, Config, DataConfig, ExtractConfig, apply_overrides, preset as make_preset, validate
 from .devices import resolve_device
 from .errors import FitWarning, InputError
@@ -151,7 +152,7 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
                 seed: int = 42, method: str = "ultraboneudf", *, config: Config | None = None,
                 assignments: list[str] | tuple[str, ...] = (), progress: Progress | None = None,
                 quiet: bool = True, source: str = "points", probe_positions: Any = None,
-                **overrides: Any) -> Reconstruction:
+                checkpoint: Checkpoint | None = None, **overrides: Any) -> Reconstruction:
     """Reconstruct a bone surface mesh from a point cloud in millimetres.
 
     Parameters
@@ -174,10 +175,15 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
         :func:`ultraboneudf.sweep.sweep_to_points`). Voxel-averaged with the points and normalised
         with the same map. Used by methods that can (Poisson orients its normals toward the probe,
         ``model.poisson_orientation``); ignored by the others.
+    checkpoint : save the training's state every ``checkpoint.every`` steps to ``checkpoint.path``
+        and, with ``checkpoint.resume``, continue a killed run from it (same result as an
+        uninterrupted run); for the methods that train with the shared loop (not FUNSR or Poisson).
     """
     t_start = time.perf_counter()
     progress = progress or Progress(quiet=quiet)
     cfg, entry = configure(preset, method, config, overrides, assignments)
+    if checkpoint is not None and not entry.takes_checkpoint:
+        raise InputError(f"method {method} cannot checkpoint its training (no --checkpoint-every/--resume)")
     dev = resolve_device(device)
     points = validate_points(points_mm, source=source)
     check_units(points, source)
@@ -187,6 +193,8 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
     extra = {"probe": unit.probe} if entry.takes_probe else {}
     if entry.takes_planes:
         extra["planes"] = unit.planes
+    if checkpoint is not None:
+        extra["checkpoint"] = checkpoint
     fitted = entry.fit(unit.points, cfg, dev, seed, progress, **extra)
     rec = _finish(fitted, unit, cfg, dev, progress, method, preset if config is None else "custom", seed,
                   t_start)

@@ -32,11 +32,12 @@ from rich.progress import Progress as _RichProgress
 from rich.text import Text
 
 
-def time_left(elapsed: float, done: float, total: float | None) -> float | None:
-    """Seconds left at the pace so far (``None`` until there is a pace or without a total)."""
-    if total is None or done <= 0 or elapsed <= 0:
+def time_left(elapsed: float, done: float, total: float | None, start: float = 0.0) -> float | None:
+    """Seconds left at the pace so far (``None`` until there is a pace or without a total);
+    ``start``: steps done before ``elapsed`` began (a resumed run), not part of the pace."""
+    if total is None or done <= start or elapsed <= 0:
         return None
-    return elapsed * max(total - done, 0.0) / done
+    return elapsed * max(total - done, 0.0) / (done - start)
 
 
 def _clock(seconds: float | None) -> str:
@@ -47,7 +48,8 @@ class _TimeLeft(ProgressColumn):
     """The stage's time left from its average pace (see the module doc)."""
 
     def render(self, task: Task) -> Text:
-        return Text(_clock(time_left(task.elapsed or 0.0, task.completed, task.total)), style="progress.remaining")
+        return Text(_clock(time_left(task.elapsed or 0.0, task.completed, task.total, task.fields.get("before", 0))),
+                    style="progress.remaining")
 
 
 class Progress:
@@ -61,13 +63,15 @@ class Progress:
         self._console = Console(file=stream if stream is not None else sys.stderr)
 
     @contextmanager
-    def stage(self, description: str, total: float | None = None) -> Iterator[Callable[[float], None]]:
-        """Show one bar for a stage of ``total`` steps (``None``: unknown); yields ``advance(n=1)``."""
+    def stage(self, description: str, total: float | None = None,
+              start: float = 0) -> Iterator[Callable[[float], None]]:
+        """Show one bar for a stage of ``total`` steps (``None``: unknown) of which ``start`` were done
+        before (a resumed run: shown, not counted in the pace); yields ``advance(n=1)``."""
         if self.quiet:
             yield lambda n=1: None
             return
         if not self._console.is_terminal:
-            with self._lines(description, total) as advance:
+            with self._lines(description, total, start) as advance:
                 yield advance
             return
         columns = [
@@ -80,20 +84,20 @@ class Progress:
             _TimeLeft(),
         ]
         with _RichProgress(*columns, console=self._console, transient=False) as bar:
-            task = bar.add_task(description, total=total)
+            task = bar.add_task(description, total=total, completed=start, before=start)
             yield lambda n=1: bar.advance(task, n)
             if total is not None:
                 bar.update(task, completed=total)
 
     @contextmanager
-    def _lines(self, description: str, total: float | None) -> Iterator[Callable[[float], None]]:
+    def _lines(self, description: str, total: float | None, before: float = 0) -> Iterator[Callable[[float], None]]:
         start = last = time.perf_counter()
-        done = 0.0
+        done = float(before)
 
         def line(now: float, final: bool = False) -> str:
             elapsed = now - start
             count = f"{done:g}/{total:g} ({100 * done / total:.0f}%)" if total else f"{done:g}"
-            left = None if final else time_left(elapsed, done, total)
+            left = None if final else time_left(elapsed, done, total, before)
             tail = " (done)" if final else ("" if left is None else f", about {_clock(left)} left")
             return f"{description}: {count}, {_clock(elapsed)} elapsed{tail}"
 

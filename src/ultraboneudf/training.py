@@ -16,6 +16,8 @@ from typing import Callable
 import torch
 from torch import nn
 
+from . import checkpoints
+from .checkpoints import Checkpoint
 from .config import LossConfig, TrainConfig, check_choices
 from .errors import InputError
 from .fields.base import normalize
@@ -50,6 +52,13 @@ class StridedSampler:
         j = torch.randperm(self.rows, generator=self.generator, device=self.device)[: self.batch]
         return 10 * j + r
 
+    def state(self) -> dict:
+        """What a checkpoint keeps of the sampler besides its generator: nothing (each draw is fresh)."""
+        return {}
+
+    def load_state(self, state: dict) -> None:
+        """Inverse of :meth:`state`."""
+
 
 class EpochSampler:
     """Consecutive batches of one random permutation of all ``total`` stored queries, redrawn when
@@ -71,6 +80,14 @@ class EpochSampler:
         rows = self.order[self.pos:self.pos + self.batch]
         self.pos += self.batch
         return rows
+
+    def state(self) -> dict:
+        """The current pass's permutation and position (for a checkpoint)."""
+        return {"order": self.order.cpu(), "pos": self.pos}
+
+    def load_state(self, state: dict) -> None:
+        """Inverse of :meth:`state`."""
+        self.order, self.pos = state["order"].to(self.device), int(state["pos"])
 
 
 SAMPLERS = {"strided": StridedSampler, "epoch": EpochSampler}
@@ -186,6 +203,19 @@ class LoopLog:
                      "CPU, a GPU runs this preset in minutes")
         self.progress.log(line)
 
+    def resume(self, history: dict[str, list[float]], seconds: float) -> None:
+        """Continue a checkpointed run: its history so far and the seconds it trained."""
+        self.terms = {k: [torch.tensor(v, device=self.device) for v in values] for k, values in history.items()}
+        self.start = time.perf_counter() - seconds
+
+    def history_so_far(self) -> dict[str, list[float]]:
+        """The recorded loss terms as plain lists (one host read; for a checkpoint)."""
+        return {k: torch.stack(v).cpu().tolist() for k, v in self.terms.items()}
+
+    def elapsed(self) -> float:
+        """Seconds of training so far, this run's and a resumed run's before it."""
+        return time.perf_counter() - self.start
+
     def finish(self) -> tuple[float, dict[str, list[float]]]:
         """Seconds since the start and the history as plain lists (one host read)."""
         if self.device.type == "cuda":
@@ -275,7 +305,8 @@ def _with_regularisers(net: nn.Module, data: TrainingData, cfg: LossConfig, term
 
 def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: TrainConfig,
           seed: int, progress: Progress = QUIET, log_every: int = 100,
-          expand: Callable[[nn.Module, TrainingData], torch.Tensor] | None = None) -> TrainResult:
+          expand: Callable[[nn.Module, TrainingData], torch.Tensor] | None = None,
+          checkpoint: Checkpoint | None = None) -> TrainResult:
     """Optimise ``net`` in place on ``data`` for ``train_cfg.iters`` iterations (Adam, §1.7).
 
     ``train_cfg.step``: ``optimised`` (hand-written input gradient, fused Adam) or ``plain``
@@ -288,7 +319,11 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
 
     ``expand`` (CAP-UDF's progressive expansion, §3.4): called once after ``train_cfg.expand_at``
     completed steps with the network and the data; it returns the new static targets (T, 3), and the
-    batch becomes ``train_cfg.expand_batch``. The optimiser state and the schedule carry over."""
+    batch becomes ``train_cfg.expand_batch``. The optimiser state and the schedule carry over.
+
+    ``checkpoint``: save the loop's state every ``checkpoint.every`` steps, and with
+    ``checkpoint.resume`` start from the saved state (:mod:`~ultraboneudf.checkpoints`): the
+    result equals the uninterrupted run's."""
     device = data.queries.device
     generator = torch.Generator(device=device).manual_seed(seed)
     check_choices(train_cfg)
@@ -308,15 +343,33 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     if (warm_steps > 0 or loss_cfg.lambda_far) and data.static_distance is None:
         raise ValueError("loss.warm_start and loss.lambda_far need the static distances in the "
                          "training data")
+    expands = expand is not None and train_cfg.expand_at > 0
+    stamp = (checkpoints.fingerprint(data.surface, data.queries, data.anchors, loss_cfg, train_cfg, seed,
+                                     sum(p.numel() for p in net.parameters()))
+             if checkpoint is not None else "")
+    start, resumed = 0, None
+    if checkpoint is not None and checkpoint.resume and checkpoint.path.exists():
+        resumed = checkpoints.load(checkpoint.path, stamp)
+        start = int(resumed["step"])
+        net.load_state_dict(resumed["net"])
+        opt.load_state_dict(resumed["optimizer"])
+        generator.set_state(resumed["generator"])
+        if expands and start > train_cfg.expand_at:
+            data.static_targets = resumed["static_targets"].to(device)
+            sampler = make_sampler(len(data.queries), train_cfg.expand_batch, generator, device)
+        sampler.load_state(resumed["sampler"])
+        progress.log(f"resumed from {checkpoint.path} at step {start:,} of {iters:,}")
     net.train()
     threads = train_cfg.threads if device.type == "cpu" else 0
-    with cpu_threads(threads), progress.stage("training", iters) as advance:
+    with cpu_threads(threads), progress.stage("training", iters, start=start) as advance:
         # the pace of the last phase: after the warm start, and after CAP-UDF's larger second batch
-        steady = max(warm_steps, train_cfg.expand_at if expand is not None else 0)
+        steady = max(warm_steps, train_cfg.expand_at if expand is not None else 0, start)
         log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr, progress=progress,
                       steady_from=steady)
-        for i in range(iters):
-            if expand is not None and train_cfg.expand_at > 0 and i == train_cfg.expand_at:
+        if resumed is not None:
+            log.resume(resumed["history"], float(resumed["seconds"]))
+        for i in range(start, iters):
+            if expands and i == train_cfg.expand_at:
                 net.eval()
                 data.static_targets = expand(net, data)
                 net.train()
@@ -334,6 +387,15 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
             terms["total"].backward()
             opt.step()
             log.step(i, terms)
+            if checkpoint is not None and checkpoint.every and (i + 1) % checkpoint.every == 0 \
+                    and i + 1 < iters:
+                checkpoints.save(checkpoint.path, {
+                    "fingerprint": stamp, "step": i + 1, "net": net.state_dict(),
+                    "optimizer": opt.state_dict(), "generator": generator.get_state(),
+                    "sampler": sampler.state(), "history": log.history_so_far(),
+                    "seconds": log.elapsed(),
+                    **({"static_targets": data.static_targets.cpu()}
+                       if expands and i + 1 > train_cfg.expand_at else {})})
     seconds, history = log.finish()
     net.eval()
     return TrainResult(seconds=seconds, iterations=iters, history=history)

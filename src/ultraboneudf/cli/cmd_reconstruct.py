@@ -59,8 +59,19 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "mesh is written in mm (default: mm)")
     p.add_argument("--method", default="ultraboneudf", choices=sorted(NAMES), help="method (default: ultraboneudf)")
     add_run_options(p, DEFAULT_PRESET)
+    p.add_argument("--checkpoint-every", type=_at_least(1), default=None, metavar="N",
+                   help="save the training's state every N steps to OUT.ckpt (removed once the mesh "
+                        "is written), so that a killed run can --resume")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from OUT.ckpt when it exists (same input, preset, --set and seed; "
+                        "the same result as an uninterrupted run)")
     add_sweep_options(p)
     p.set_defaults(func=run)
+
+
+def checkpoint_path(output: Path) -> Path:
+    """Where ``reconstruct -o OUTPUT`` keeps its training checkpoint: ``OUTPUT.ckpt``."""
+    return output.with_name(output.name + ".ckpt")
 
 
 def read_input(path: Path, args: argparse.Namespace,
@@ -85,18 +96,27 @@ def read_input(path: Path, args: argparse.Namespace,
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..checkpoints import Checkpoint
     from ..io import check_outputs, sha256_file
     from ..pipeline import configure, reconstruct
     from ..progress import Progress
 
     output = check_outputs(args.output, (args.input,))  # before any work: never lose the user's data
     overrides = {} if args.iters is None else {"train.iters": args.iters}
-    configure(args.preset, args.method, None, overrides, args.assignments)  # a bad --set: before reading
+    _, entry = configure(args.preset, args.method, None, overrides, args.assignments)  # before reading
     progress = Progress(quiet=args.quiet)
+    checkpoint = None
+    if args.checkpoint_every is not None or args.resume:
+        if not entry.takes_checkpoint:
+            raise InputError(f"--method {args.method} cannot checkpoint its training; drop "
+                             f"--checkpoint-every/--resume")
+        checkpoint = Checkpoint(checkpoint_path(output), every=args.checkpoint_every or 0, resume=args.resume)
+        if args.resume and not checkpoint.path.exists():
+            progress.log(f"no checkpoint {checkpoint.path} yet: training starts at step 0")
     points, probe, sweep_info = read_input(args.input, args, progress)
     rec = reconstruct(points, preset=args.preset, device=args.device, seed=args.seed, method=args.method,
                       assignments=args.assignments, progress=progress, source=str(args.input),
-                      probe_positions=probe, **overrides)
+                      probe_positions=probe, checkpoint=checkpoint, **overrides)
     if rec.mesh is None:
         print(f"ultraboneudf reconstruct: no surface was found in {args.input}; nothing written "
               "(see the loss history with --set train.iters=… or try another preset)", file=sys.stderr)
@@ -105,6 +125,8 @@ def run(args: argparse.Namespace) -> int:
     if sweep_info is not None:
         rec.input["sweep"] = sweep_info
     sidecar = rec.save(output)
+    if checkpoint is not None:
+        checkpoint.path.unlink(missing_ok=True)  # the run is complete: nothing left to resume
     t = rec.timings
     progress.log(f"wrote {output} ({rec.counts['vertices']} vertices, {rec.counts['faces']} faces) and "
                  f"{sidecar}; {t['total_s']:.1f} s (preprocess {t['preprocess_s']:.1f}, "

@@ -25,18 +25,20 @@ def _registry() -> dict[str, Method]:
 
     return {
         "ultraboneudf": Method(ultraboneudf.fit, summary="tangent loss + L_GS, DualMesh-UDF (§1)",
-                               takes_planes=True),
-        "capudf": Method(capudf.fit, capudf.configure, "CAP-UDF: consistency-aware loss, two stages (§3)"),
+                               takes_planes=True, takes_checkpoint=True),
+        "capudf": Method(capudf.fit, capudf.configure, "CAP-UDF: consistency-aware loss, two stages (§3)",
+                         takes_checkpoint=True),
         "funsr": Method(funsr.fit, funsr.configure, "FUNSR: SDF + SCC + adversarial loss, marching cubes (§4)",
                         takes_planes=True),
         "carotidudf": Method(carotidudf.fit, carotidudf.configure_carotidudf, "CarotidUDF as inferred (§5)",
-                             takes_planes=True),
+                             takes_planes=True, takes_checkpoint=True),
         "poisson": Method(poisson.fit, poisson.configure, "screened Poisson, depth 9 (§7); extra [poisson]",
                           takes_probe=True, trains=False),
         "vanilla_udf": Method(carotidudf.fit, carotidudf.configure_vanilla, "ablation: L_pull + UDF→SDF (§5.5)",
-                              takes_planes=True),
+                              takes_planes=True, takes_checkpoint=True),
         "ultraboneudf_pull": Method(carotidudf.fit, carotidudf.configure_pull,
-                                    "ablation: L_pull + DualMesh-UDF (§5.5)", takes_planes=True),
+                                    "ablation: L_pull + DualMesh-UDF (§5.5)", takes_planes=True,
+                                    takes_checkpoint=True),
     }
 
 

@@ -61,12 +61,14 @@ def keep_preset(cfg: Config, preset: str) -> None:
 class Method:
     """A registry entry: ``fit`` and ``configure(cfg, preset_name)`` (method defaults, in place).
     ``takes_probe`` / ``takes_planes``: ``fit`` accepts per-point probe positions as ``probe=`` /
-    the local planes as ``planes=`` (see the module doc)."""
+    the local planes as ``planes=`` (see the module doc); ``takes_checkpoint``: ``fit`` accepts a
+    :class:`~ultraboneudf.checkpoints.Checkpoint` as ``checkpoint=`` (its training can resume)."""
 
     fit: FitFunction
     configure: ConfigureFunction = keep_preset
     summary: str = ""
     takes_probe: bool = False
     takes_planes: bool = False
+    takes_checkpoint: bool = False
     trains: bool = True
     """``fit`` trains a network for ``train.iters`` steps (Poisson solves one linear system)."""

@@ -21,6 +21,7 @@ from ..fields.base import normalize
 from ..fields.mlp import MLPField, count_parameters, value_and_grad
 from ..geometry.neighbors import NearestIndex
 from ..geometry.queries import query_spread, surface_subset
+from ..checkpoints import Checkpoint
 from ..progress import QUIET, Progress
 from ..training import StridedSampler, TrainingData, train
 from .base import Fitted
@@ -150,7 +151,7 @@ def make_expansion(cfg: Config, seed: int):
 
 
 def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
-        progress: Progress = QUIET) -> Fitted:
+        progress: Progress = QUIET, checkpoint: Checkpoint | None = None) -> Fitted:
     """Train CAP-UDF on a unit-space cloud; returns the UDF field and the surface rows ``P`` (for the
     extraction box and the ``far`` trimming)."""
     d = cfg.data
@@ -172,7 +173,7 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
         progress.log(f"capudf: train.expand_at={cfg.train.expand_at} ≥ train.iters={cfg.train.iters}; "
                      "one stage only (no progressive expansion)")
     expand = make_expansion(cfg, seed)
-    result = train(net, data, cfg.loss, cfg.train, seed, progress, expand=expand)
+    result = train(net, data, cfg.loss, cfg.train, seed, progress, expand=expand, checkpoint=checkpoint)
     counts = {"surface_points": len(p), "queries": len(queries), "anchors": 0,
               "parameters": count_parameters(net), "expanded_points": expand.stats.get("added", 0)}
     return Fitted(field=MLPField(net), counts=counts, timings={"preprocess_s": prep_s, "train_s": result.seconds},

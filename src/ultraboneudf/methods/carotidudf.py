@@ -24,6 +24,7 @@ from ..config import Config, SHORT_PRESETS
 from ..fields.mlp import MLPField, count_parameters
 from ..geometry.normals import ultraboneudf_normals
 from ..geometry.surface_fit import LocalPlanes
+from ..checkpoints import Checkpoint
 from ..progress import QUIET, Progress
 from ..training import train
 from .base import Fitted
@@ -69,7 +70,8 @@ def configure_pull(cfg: Config, preset: str) -> None:
 
 
 def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
-        progress: Progress = QUIET, planes: LocalPlanes | None = None) -> Fitted:
+        progress: Progress = QUIET, planes: LocalPlanes | None = None,
+        checkpoint: Checkpoint | None = None) -> Fitted:
     """Train the pull-loss UDF on a unit-space cloud (``planes``: the pipeline's local planes, for
     the ``surface`` distance target of the warm start); returns the field, the surface rows and
     (when the extractor needs them) their oriented normals."""
@@ -81,7 +83,7 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
         normals = ultraboneudf_normals(surface, points)
     prep_s = time.perf_counter() - t0
     net = build_network(cfg, seed, device)
-    result = train(net, data, cfg.loss, cfg.train, seed, progress)
+    result = train(net, data, cfg.loss, cfg.train, seed, progress, checkpoint=checkpoint)
     counts = {"surface_points": len(data.surface), "queries": len(data.queries),
               "anchors": len(data.anchors), "parameters": count_parameters(net)}
     return Fitted(field=MLPField(net), counts=counts, timings={"preprocess_s": prep_s, "train_s": result.seconds},

@@ -16,6 +16,7 @@ from ..geometry.neighbors import NearestIndex
 from ..geometry.support import DataSurface
 from ..geometry.surface_fit import LocalPlanes
 from ..geometry.queries import anchors, gaussian_queries, grid_queries, query_spread, surface_subset_index
+from ..checkpoints import Checkpoint
 from ..progress import QUIET, Progress
 from ..training import TrainingData, train
 from .base import Fitted
@@ -105,7 +106,8 @@ def build_network(cfg: Config, seed: int, device: torch.device) -> torch.nn.Modu
 
 
 def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
-        progress: Progress = QUIET, planes: LocalPlanes | None = None) -> Fitted:
+        progress: Progress = QUIET, planes: LocalPlanes | None = None,
+        checkpoint: Checkpoint | None = None) -> Fitted:
     """Train the UltraBoneUDF field on a unit-space cloud (``planes``: the pipeline's local planes,
     for the ``surface`` distance target); returns the field and its counts."""
     t0 = time.perf_counter()
@@ -113,7 +115,7 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     data = prepare(points, cfg, device, seed, progress, timings=stages, planes=planes)
     prep_s = time.perf_counter() - t0
     net = build_network(cfg, seed, device)
-    result = train(net, data, cfg.loss, cfg.train, seed, progress)
+    result = train(net, data, cfg.loss, cfg.train, seed, progress, checkpoint=checkpoint)
     return fitted_field(net, data, prep_s, result.seconds, stages, result.history)
 
 

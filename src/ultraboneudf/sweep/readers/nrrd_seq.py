@@ -113,6 +113,25 @@ def _companion_fields(transforms) -> tuple[dict[int, dict[str, str]], str]:
     return merged, " + ".join(names)
 
 
+_NRRD_TYPE_BYTES = {t: n for n, names in {
+    1: ("signed char", "int8", "int8_t", "uchar", "unsigned char", "uint8", "uint8_t"),
+    2: ("short", "short int", "signed short", "signed short int", "int16", "int16_t", "ushort",
+        "unsigned short", "unsigned short int", "uint16", "uint16_t"),
+    4: ("int", "signed int", "int32", "int32_t", "uint", "unsigned int", "uint32", "uint32_t", "float"),
+}.items() for t in names}
+
+
+def _check_declared_size(path: Path, header: dict) -> None:
+    """Refuse, before pynrrd allocates or inflates anything, a header declaring more pixel bytes than
+    :data:`~.metaio.MAX_PIXEL_BYTES` (types not listed count 8 bytes a sample)."""
+    sizes = [int(v) for v in np.atleast_1d(header.get("sizes", []))]
+    declared = int(np.prod(sizes, dtype=np.float64)) * _NRRD_TYPE_BYTES.get(str(header.get("type", "")), 8)
+    if declared > metaio.MAX_PIXEL_BYTES:
+        raise InputError(f"{path}: the header declares {declared / 2**30:.1f} GiB of samples (sizes "
+                         f"{' '.join(map(str, sizes))}), above the limit of {metaio.MAX_PIXEL_BYTES / 2**30:.1f} GiB "
+                         f"(set ULTRABONEUDF_MAX_PIXEL_BYTES to raise it)")
+
+
 def read(path: str | os.PathLike, masks: str | os.PathLike | None = None,
          transform: str | None = None, transforms=None, as_masks: bool = False,
          calibration=None, reference: str | None = None, image_frame: str | None = None,
@@ -138,7 +157,10 @@ def read(path: str | os.PathLike, masks: str | os.PathLike | None = None,
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     try:
+        _check_declared_size(path, nrrd.read_header(str(path)))
         data, header = nrrd.read(str(path), index_order="F")
+    except InputError:
+        raise
     except Exception as exc:  # pynrrd raises NRRDError, ValueError, OSError, zlib errors
         raise InputError(f"{path}: cannot read NRRD ({type(exc).__name__}: {exc})") from None
     ndim = data.ndim

@@ -1,0 +1,146 @@
+"""A killed training run resumes from its checkpoint and ends where the uninterrupted run ends."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from ultraboneudf.checkpoints import Checkpoint
+from ultraboneudf.config import preset
+from ultraboneudf.errors import InputError
+from ultraboneudf.fields.mlp import DistanceMLP
+from ultraboneudf.geometry.queries import anchors, gaussian_queries, grid_queries, query_spread
+from ultraboneudf.progress import Progress
+from ultraboneudf.training import TrainingData, train
+
+
+def _data():
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-0.4, 0.4, (800, 2))
+    surface = np.c_[xy, 0.1 + 0.05 * np.sin(6 * xy[:, 0])]
+    queries = np.concatenate([gaussian_queries(surface, query_spread(surface, 50), 20, rng),
+                              grid_queries(1000, rng)])
+    a, t = anchors(surface, "official", 10, True, 0.1)
+    f = lambda v: torch.as_tensor(v, dtype=torch.float32)  # noqa: E731
+    d = TrainingData(surface=f(surface), queries=f(queries), anchors=f(a), anchor_targets=f(t))
+    d.set_nearest_targets()
+    return d
+
+
+def _net():
+    return DistanceMLP((32, 64, 64), radius=0.1, generator=torch.Generator().manual_seed(5))
+
+
+class _Killed(Exception):
+    pass
+
+
+class _KillAt(Progress):
+    """A progress whose training stage stops the run (as a signal would) after ``steps`` steps."""
+
+    def __init__(self, steps):
+        super().__init__(quiet=True)
+        self.steps = steps
+
+    def stage(self, description, total=None, start=0):
+        from contextlib import contextmanager
+
+        @contextmanager
+        def killing():
+            done = [0]
+
+            def advance(n=1):
+                done[0] += n
+                if done[0] >= self.steps:
+                    raise _Killed
+            yield advance
+        return killing()
+
+
+@pytest.mark.parametrize("sampler,warm", [("epoch", 0.1), ("strided", 0.0)])
+def test_a_killed_and_resumed_run_equals_the_uninterrupted_one(tmp_path, sampler, warm):
+    cfg = preset("fast")
+    cfg.train.iters, cfg.train.batch, cfg.train.warmup, cfg.train.sampler = 240, 300, 20, sampler
+    cfg.loss.warm_start, cfg.loss.lambda_os, cfg.loss.os_rows = warm, 10.0, 64
+    whole = _net()
+    ref = train(whole, _data(), cfg.loss, cfg.train, seed=7, log_every=10)
+
+    ckpt = Checkpoint(tmp_path / "run.ckpt", every=50)
+    first = _net()
+    with pytest.raises(_Killed):
+        train(first, _data(), cfg.loss, cfg.train, seed=7, log_every=10, checkpoint=ckpt, progress=_KillAt(130))
+    saved = torch.load(ckpt.path, weights_only=True)
+    assert saved["step"] == 100                                  # the last save before the kill
+
+    again = _net()                                               # a new process: fresh weights
+    res = train(again, _data(), cfg.loss, cfg.train, seed=7, log_every=10,
+                checkpoint=Checkpoint(ckpt.path, every=50, resume=True))
+    for a, b in zip(whole.state_dict().values(), again.state_dict().values()):
+        assert torch.equal(a, b)
+    assert res.history["total"] == pytest.approx(ref.history["total"], rel=0, abs=0)   # continuous
+    assert len(res.history["total"]) == len(ref.history["total"])
+
+
+def test_a_checkpoint_of_another_run_is_refused(tmp_path):
+    cfg = preset("fast")
+    cfg.train.iters, cfg.train.batch, cfg.train.warmup = 60, 300, 5
+    ckpt = Checkpoint(tmp_path / "run.ckpt", every=20)
+    train(_net(), _data(), cfg.loss, cfg.train, seed=7, checkpoint=ckpt)
+    assert ckpt.path.exists()                                    # saved at 20 and 40 (not at the end)
+    with pytest.raises(InputError, match="made by another run"):
+        train(_net(), _data(), cfg.loss, cfg.train, seed=8, checkpoint=Checkpoint(ckpt.path, resume=True))
+    ckpt.path.write_bytes(b"not a checkpoint")
+    with pytest.raises(InputError, match="not a readable training checkpoint"):
+        train(_net(), _data(), cfg.loss, cfg.train, seed=7, checkpoint=Checkpoint(ckpt.path, resume=True))
+
+
+def _cloud(path):
+    rng = np.random.default_rng(0)
+    theta = rng.uniform(np.pi / 4, 3 * np.pi / 4, 3000)
+    np.savetxt(path, np.c_[20 * np.cos(theta), rng.uniform(0, 40, 3000), 20 * np.sin(theta)])
+    return path
+
+
+def test_cli_run_killed_by_sigterm_resumes_to_the_same_mesh(tmp_path):
+    src = _cloud(tmp_path / "in.xyz")
+    common = ["reconstruct", str(src), "--preset", "fast", "--iters", "3000", "--set", "train.threads=1",
+              "--set", "extract.max_depth=7"]
+    cli = [sys.executable, "-m", "ultraboneudf.cli"]
+    out = tmp_path / "whole.ply"
+    assert subprocess.run([*cli, *common, "-o", str(out), "--quiet"], capture_output=True).returncode == 0
+
+    killed = tmp_path / "resumed.ply"
+    ckpt = tmp_path / "resumed.ply.ckpt"
+    proc = subprocess.Popen([*cli, *common, "-o", str(killed), "--checkpoint-every", "200", "--quiet"],
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    while not ckpt.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before its first checkpoint"
+    proc.send_signal(signal.SIGTERM)
+    proc.wait(timeout=60)
+    assert proc.returncode != 0 and ckpt.exists() and not killed.exists()
+
+    res = subprocess.run([*cli, *common, "-o", str(killed), "--checkpoint-every", "200", "--resume"],
+                         capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert "resumed from" in res.stderr and not ckpt.exists()     # removed once the mesh is written
+    assert killed.read_bytes() == out.read_bytes()
+    side = json.loads((tmp_path / "resumed.json").read_text())
+    whole = json.loads((tmp_path / "whole.json").read_text())
+    assert side["loss_history"] == whole["loss_history"] and len(side["loss_history"]["total"]) == 31
+
+
+def test_methods_without_the_shared_loop_refuse_checkpoints_before_any_work(tmp_path):
+    src = _cloud(tmp_path / "in.xyz")
+    for method in ("funsr", "poisson"):
+        res = subprocess.run([sys.executable, "-m", "ultraboneudf.cli", "reconstruct", str(src), "-o",
+                              str(tmp_path / "o.ply"), "--method", method, "--checkpoint-every", "10"],
+                             capture_output=True, text=True)
+        assert res.returncode == 2 and f"--method {method} cannot checkpoint" in res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1
