@@ -144,3 +144,42 @@ def test_methods_without_the_shared_loop_refuse_checkpoints_before_any_work(tmp_
                              capture_output=True, text=True)
         assert res.returncode == 2 and f"--method {method} cannot checkpoint" in res.stderr
         assert len(res.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("stage,sweep", [("read frames", True), ("segment", True), ("training", False),
+                                         ("UDF clean", False)])
+def test_ctrl_c_at_each_stage_leaves_no_output(tmp_path, stage, sweep):
+    """SIGINT as soon as a stage reports: exit 130, neither mesh nor sidecar nor a stray temporary."""
+    import os
+
+    from ultraboneudf.sweep import Sweep, write_sweep
+    from ultraboneudf.sweep.transforms import rigid_from_euler
+
+    if sweep:
+        n = 150
+        masks = np.zeros((n, 120, 160), dtype=bool)
+        masks[:, 60, 20:140] = True
+        images = (masks * 200 + 20).astype(np.uint8)
+        poses = np.stack([rigid_from_euler([0, 0, 0.5 * i], [0, 0, 0]) for i in range(n)])  # 0.5 mm apart along z
+        src = tmp_path / "sweep"
+        write_sweep(Sweep(image_to_world=poses, spacing_mm=0.2, image_size=(160, 120), images=images,
+                          pixel_offset=0.5), src)          # no masks: the classical detector segments
+    else:
+        src = _cloud(tmp_path / "in.xyz")
+    out = tmp_path / "out" / "bone.ply"
+    out.parent.mkdir()
+    env = {**os.environ, "ULTRABONEUDF_PROGRESS_S": "0"}
+    proc = subprocess.Popen([sys.executable, "-m", "ultraboneudf.cli", "reconstruct", str(src), "-o", str(out),
+                             "--preset", "fast", "--set", "extract.min_leaf_mm=0", "--set", "extract.max_depth=9"],
+                            stderr=subprocess.PIPE, text=True, env=env)
+    seen = []
+    for line in proc.stderr:
+        seen.append(line)
+        if line.startswith(f"{stage}:"):
+            proc.send_signal(signal.SIGINT)
+            break
+    rest = proc.communicate(timeout=120)[1]
+    assert any(s.startswith(f"{stage}:") for s in seen), "".join(seen)[-2000:]
+    assert proc.returncode == 130, "".join(seen) + rest
+    assert "interrupted" in rest and "Traceback" not in rest
+    assert list(out.parent.iterdir()) == []

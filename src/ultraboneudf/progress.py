@@ -12,6 +12,7 @@ stage ends, so a plain line is written every ``interval`` seconds instead.
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from contextlib import contextmanager
@@ -56,9 +57,15 @@ class Progress:
     """A progress reporter; ``Progress(quiet=True)`` prints nothing.
 
     ``stream``: where to write (default stderr); ``interval``: seconds between the plain lines
-    written when ``stream`` is not a terminal."""
+    written when ``stream`` is not a terminal (default: the environment's
+    ``ULTRABONEUDF_PROGRESS_S``, else 10)."""
 
-    def __init__(self, quiet: bool = False, stream: IO[str] | None = None, interval: float = 10.0) -> None:
+    def __init__(self, quiet: bool = False, stream: IO[str] | None = None, interval: float | None = None) -> None:
+        if interval is None:
+            try:
+                interval = float(os.environ.get("ULTRABONEUDF_PROGRESS_S", 10.0))
+            except ValueError:
+                interval = 10.0
         self.quiet, self.interval = quiet, interval
         self._console = Console(file=stream if stream is not None else sys.stderr)
 
