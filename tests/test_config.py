@@ -112,3 +112,39 @@ def test_modes_checked_on_construction_and_before_a_run():
     cfg.loss.lambda_gs = float("nan")
     with pytest.raises(InputError, match="loss.lambda_gs=nan"):
         validate(cfg)
+
+
+def test_every_field_has_a_docstring_and_the_config_command_prints_it(capsys):
+    from ultraboneudf.cli import main
+    from ultraboneudf.config import field_docs
+
+    for section in fields(Config()):
+        docs = field_docs(type(getattr(Config(), section.name)))
+        assert all(docs.values()), [k for k, v in docs.items() if not v]
+    assert main(["config", "--method", "capudf", "--changed", "--set", "train.iters=123"]) == 0
+    out = capsys.readouterr().out
+    assert "train.iters = 123" in out and "loss.kind = capudf" in out
+    assert "data.voxel_size_mm" not in out                 # unchanged from the default: not listed
+    assert "Optimiser steps" in out
+    assert main(["config", "--set", "data.subset=bogus"]) == 2
+
+
+def test_the_documented_defaults_of_docs_methods_are_the_dataclass_defaults():
+    """Every ``| `section.key=…` | default | …`` row of docs/methods.md names a real field, and its
+    default column starts with the dataclass default, so the page cannot drift from the code."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "methods.md").read_text()
+    rows = re.findall(r"^\| `([a-z_]+)\.([a-z_0-9]+)=[^`]*` \| ([^|]+) \|", text, re.M)
+    assert len(rows) > 30
+    base = Config()
+    for section, name, default in rows:
+        value = getattr(getattr(base, section), name)        # AttributeError: an unknown key
+        first = default.split("→")[0].split("(")[0].strip().strip("`").replace(",", "").replace("−", "-")
+        if isinstance(value, bool):
+            assert first.lower() == str(value).lower(), (section, name, first)
+        elif isinstance(value, (int, float)):
+            assert float(first) == float(value), (section, name, first, value)
+        elif isinstance(value, str):
+            assert first == value, (section, name, first, value)

@@ -27,6 +27,27 @@ def _hints(cls: type) -> dict[str, Any]:
     return typing.get_type_hints(cls)
 
 
+@cache
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstring under each field of a config section (the string literal that follows its
+    annotation in the class body), ``""`` where there is none. Read from the source, which is the
+    one place the fields are documented."""
+    import ast
+    import inspect
+    import textwrap
+
+    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+    docs: dict[str, str] = {}
+    for node, after in zip(body, body[1:] + [None]):
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            doc = ""
+            if isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant) \
+                    and isinstance(after.value.value, str):
+                doc = " ".join(after.value.value.split())
+            docs[node.target.id] = doc
+    return {f.name: docs.get(f.name, "") for f in fields(cls)}
+
+
 def choices(section: Any, name: str) -> tuple[str, ...] | None:
     """The allowed values of a mode field (annotated ``Literal[...]``) of a config section (a class
     or an instance), or ``None`` when the field is not a mode."""
@@ -140,6 +161,7 @@ class ModelConfig(_Section):
     hidden: tuple[int, ...] = (64, 128, 128, 256, 256, 256)
     """Hidden widths; the official network has 6 hidden layers (191,042 parameters)."""
     weight_norm: bool = True
+    """Weight normalisation ``W = g·V/‖V‖`` on every layer (§0.3)."""
     geometric_init_radius: float = 0.5
     """β of the geometric initialisation: the initial field is |‖x‖ − β|."""
     abs_output: bool = True
@@ -184,7 +206,9 @@ class LossConfig(_Section):
     tangent_norm: Literal["l1", "l2"] = "l1"
     """Residual penalty of the tangent loss: ``l1`` (official code) or ``l2`` (paper, Eq. 6)."""
     lambda_tangent: float = 1.0
+    """Weight of the tangent-plane loss (λ_NC, Eq. 8)."""
     lambda_gs: float = 0.01
+    """Weight of the global-shape term L_GS on the anchors (λ_GS, Eq. 8)."""
     gs_form: Literal["per_anchor", "broadcast"] = "broadcast"
     """How ``L_GS`` pairs outputs and targets: ``per_anchor``, ``mean_i (u(ρ_i) − t_i)²`` (the paper's
     Eq. 7); ``broadcast``, ``mean_i mean_j (u(ρ_i) − t_j)²`` = ``mean_i (u(ρ_i) − mean t)² + var t``,
@@ -234,7 +258,9 @@ class TrainConfig(_Section):
     SECTION: ClassVar[str] = "train"
 
     iters: int = 30_000
+    """Optimiser steps (the command line's ``--iters``)."""
     batch: int = 5_000
+    """Queries per step."""
     sampler: Literal["strided", "epoch"] = "strided"
     """Batch draw: ``strided`` (the reference, §0.5) or ``epoch`` (consecutive batches of one
     permutation of all stored queries per pass)."""
@@ -245,6 +271,7 @@ class TrainConfig(_Section):
     """``optimised`` (hand-written input gradient and fused Adam) or ``plain`` (autograd's double
     backward and PyTorch's default Adam): the same losses and updates (tested to fp32 precision)."""
     lr: float = 1e-3
+    """Peak learning rate of Adam, reached after ``warmup`` steps, then a cosine decay to 0 (§0.6)."""
     warmup: int = 1_000
     """Linear warm-up iterations from lr = 0 (§0.6)."""
     disc_lr: float = 1e-3
@@ -273,15 +300,32 @@ class ExtractConfig(_Section):
     SECTION: ClassVar[str] = "extract"
 
     max_depth: int = 9
+    """Octree depth D over ``domain`` (leaves of edge ``(hi − lo) / 2^D``); the reference's 9 over
+    [−1, 1]³ is 256 cells across the object's longest side (§2.2)."""
     sampling_depth: int = 1
+    """Sub-lattice per leaf: ``(2^s + 1)³`` samples of the UDF and its gradient (§2.4)."""
     margin: float = 0.002
+    """Subdivision margin μ (unit space): a cell is kept while ``u(centre) < half diagonal + μ`` (§2.3)."""
     valid_threshold: float = 0.01
+    """Projection-validity threshold τ_val (unit space): a sample counts only if the UDF at its
+    projection ``x − u·ĝ`` is below this (§2.5)."""
     min_udf: float = 1e-6
+    """τ_min (unit space): samples with ``u`` at or below this are left out of the vertex solve, their
+    gradient being undefined on the zero set (§2.6)."""
     corner_factor: float = 1.0
+    """A corner vertex is accepted inside its leaf enlarged by this fraction of the leaf edge on every
+    side (f_c, §2.6)."""
     edge_factor: float = 1.0
+    """An edge (line) vertex takes the line's crossings of the leaf's faces, or failing those, of the
+    leaf enlarged by this fraction of its edge (f_e, §2.6)."""
     plane_factor: float = 1.0
+    """A plane vertex takes the plane's crossings of the leaf's edges, or failing those, of the leaf
+    enlarged by this fraction of its edge (f_p, §2.6)."""
     sv_threshold: float = 0.2
+    """Relative singular-value cut τ_sv of the vertex solve: singular values below this × the largest
+    count as zero (the vertex type: 3 left = corner, 2 = edge, 1 = plane; §2.6)."""
     dedup_eps: float = 1e-15
+    """ε_dup (unit space): vertices closer than this are merged after meshing (§2.10)."""
     batch: int = 150_000
     """Points per field evaluation."""
     band_start_depth: int = 0

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 import traceback
 import warnings
@@ -16,7 +17,7 @@ import warnings
 from .._version import __version__
 from ..errors import FitWarning, InputError, SweepWarning
 
-COMMANDS = ["reconstruct", "demo", "evaluate", "render", "stats", "sweep2points", "simulate", "info"]
+COMMANDS = ["reconstruct", "demo", "evaluate", "render", "stats", "sweep2points", "simulate", "config", "info"]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -87,6 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("ultraboneudf: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader went away (`| head`): stop quietly, as other tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except Exception:  # a bug: show it, exit 1
         traceback.print_exc()
         return 1
