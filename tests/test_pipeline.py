@@ -1,6 +1,7 @@
 """End-to-end reconstruction on a small analytic open surface, on the CPU."""
 
 import dataclasses
+import hashlib
 
 import numpy as np
 import pytest
@@ -62,6 +63,10 @@ def test_sidecar_contents(small_run, tmp_path):
     for key in ("method", "preset", "config", "timings", "counts", "device", "seed", "version", "input",
                 "mesh_quality", "data_fit"):
         assert key in sidecar
+    # a Python run records its input too: the array's count and hash, so rec.save() has provenance
+    arr = np.ascontiguousarray(patch_points(), dtype=np.float64)
+    assert sidecar["input"] == {"source": "points", "points": len(arr),
+                                "points_sha256": hashlib.sha256(arr.tobytes()).hexdigest()}
     # the 3 mm support trim leaves no face ≥ 3 mm (the self-check's distance) from the data
     fit = sidecar["data_fit"]
     assert fit["threshold_mm"] == rec.config.extract.fit_mm == 3.0

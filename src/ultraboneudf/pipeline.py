@@ -8,6 +8,7 @@ positions (from a tracked sweep) follow the points through voxelisation and the 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import random
 import time
 import warnings
@@ -198,8 +199,16 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
     fitted = entry.fit(unit.points, cfg, dev, seed, progress, **extra)
     rec = _finish(fitted, unit, cfg, dev, progress, method, preset if config is None else "custom", seed,
                   t_start)
+    rec.input = input_record(points, source)
     _warn_fit(rec, source)
     return rec
+
+
+def input_record(points: np.ndarray, source: str) -> dict[str, Any]:
+    """The sidecar's ``input`` for points given as an array: their name, count and the SHA-256 of
+    their float64 bytes (the command line adds the file's path and hash)."""
+    arr = np.ascontiguousarray(points, dtype=np.float64)
+    return {"source": source, "points": int(len(arr)), "points_sha256": hashlib.sha256(arr.tobytes()).hexdigest()}
 
 
 def _warn_fit(rec: Reconstruction, source: str) -> None:
@@ -227,16 +236,18 @@ def reconstruct_many(clouds_mm: Sequence[Any], preset: str = DEFAULT_PRESET, dev
         raise InputError("reconstruct_many needs at least one cloud and one source name per cloud")
     cfg, _ = configure(preset, "ultraboneudf", None, overrides, assignments)
     dev = resolve_device(device)
-    units = []
+    units, records = [], []
     for cloud, name in zip(clouds, names):
         seed_everything(seed)
         cloud = validate_points(cloud, source=name)
         check_units(cloud, name)
         units.append(_to_unit(cloud, None, cfg, seed, name))
+        records.append(input_record(cloud, name))
     fitted = ubu.fit_many([u.points for u in units], cfg, dev, seed, progress, [u.planes for u in units])
     out = [_finish(f, unit, cfg, dev, progress, "ultraboneudf", preset, seed, t_start)
            for f, unit in zip(fitted, units)]
-    for rec, name in zip(out, names):
+    for rec, name, record in zip(out, names, records):
+        rec.input = record
         rec.timings["total_s"] = time.perf_counter() - t_start   # the batch's wall time, shared
         _warn_fit(rec, name)
     return out

@@ -46,8 +46,8 @@ def run(args: argparse.Namespace) -> int:
     if rec.mesh is None:
         progress.log("demo: the reconstruction found no surface")
         return 1
-    rec.input = {"path": str(points_path.resolve()), "sha256": sha256_file(points_path),
-                 "note": "built-in demo phantom"}
+    rec.input.update({"path": str(points_path.resolve()), "sha256": sha256_file(points_path),
+                      "note": "built-in demo phantom"})
     rec.save(out / "demo_mesh.ply")
     result = evaluate(rec.mesh, phantom.truth, samples=args.samples, seed=0)
     save_json(result.to_dict(), out / "demo_eval.json")

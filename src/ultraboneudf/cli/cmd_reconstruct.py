@@ -121,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"ultraboneudf reconstruct: no surface was found in {args.input}; nothing written "
               "(see the loss history with --set train.iters=… or try another preset)", file=sys.stderr)
         return 1
-    rec.input = {"path": str(args.input.resolve()), "sha256": sha256_file(args.input), "units": args.units}
+    rec.input.update(path=str(args.input.resolve()), sha256=sha256_file(args.input), units=args.units)
     if sweep_info is not None:
         rec.input["sweep"] = sweep_info
     sidecar = rec.save(output)
