@@ -1,0 +1,46 @@
+"""The paper's tables from a runner's folder: per-specimen CD and HD95 with the best in bold and
+the mean of specimen means (§6.1), and the paired Wilcoxon tests with Bonferroni correction (§6.3)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputError
+from ..evaluation.stats import Record, compare_to_baseline
+from ..evaluation.tables import comparisons_table, format_table, results_table
+from .runner import finished_rows
+
+
+def labels(rows: list[dict]) -> list[str]:
+    """What each table row is called: the method, and those of its overrides that are not the same
+    in every cell (the grid's axes)."""
+    common = set.intersection(*(set((r.get("overrides") or "").split()) for r in rows))
+    out = []
+    for r in rows:
+        own = [o for o in (r.get("overrides") or "").split() if o not in common]
+        out.append(r["method"] + (f" [{' '.join(own)}]" if own else ""))
+    return out
+
+
+def records(out: Path) -> list[Record]:
+    """One :class:`Record` per finished cell (failures as ``None``)."""
+    rows = finished_rows(out)
+    if not rows:
+        raise InputError(f"{out}: no finished cells (run `ultraboneudf bench run` first)")
+    return [Record(method=name, specimen=r["specimen"], reconstruction=r["unit"],
+                   cd_mm=r["cd_mm"] if r["status"] == "ok" else None,
+                   hd95_mm=r["hd95_mm"] if r["status"] == "ok" else None) for r, name in zip(rows, labels(rows))]
+
+
+def report(out: Path, fmt: str = "md", baseline: str | None = None, decimals: int = 2) -> str:
+    """The CD and HD95 tables (and, with ``baseline``, its Wilcoxon tests against every other
+    method, Bonferroni over their number) in ``fmt`` (``md``, ``csv``, ``latex``)."""
+    recs = records(out)
+    parts = []
+    for metric in ("cd_mm", "hd95_mm"):
+        parts.append(format_table(results_table(recs, metric, decimals=decimals), fmt))
+    if baseline is not None:
+        for metric in ("cd_mm", "hd95_mm"):
+            comps = compare_to_baseline(recs, baseline, metric, source=str(out))
+            parts.append(format_table(comparisons_table(comps), fmt, first_header="competitor"))
+    return "\n\n".join(parts) + "\n"

@@ -1,0 +1,199 @@
+"""The experiment runner: cells (unit × method × overrides), one folder each, resumable.
+
+A cell's folder holds ``mesh.ply`` with its sidecar ``mesh.json`` and, written last and atomically,
+``result.json`` (the metrics, the timings, the counts, the parameters). A cell is finished exactly
+when its ``result.json`` exists: a run killed at any moment leaves at most one unfinished folder,
+which the next run clears and recomputes. A failed reconstruction is a finished cell too (its
+``result.json`` says why); ``retry_failed`` runs those again. ``results.csv`` and ``results.sqlite``
+are rebuilt from the ``result.json`` files after every cell, so they always list exactly the
+finished cells.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import shutil
+import sqlite3
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._version import __version__
+from ..errors import InputError
+from ..io import atomic_write_bytes, save_json
+from ..progress import QUIET, Progress
+from .manifest import Unit
+
+EXPERIMENTS: dict[str, dict[str, Any]] = {
+    "E1": {"methods": ["poisson", "funsr", "carotidudf", "capudf", "ultraboneudf"]},
+    "E3": {"methods": ["ultraboneudf"], "sweep": {"loss.lambda_gs": ["0", "0.001", "0.01", "0.1", "1.0"]}},
+    "E4": {"methods": ["ultraboneudf"], "sweep": {"model.depth": [str(d) for d in range(2, 11)]}},
+    "E5": {"methods": ["ultraboneudf"], "set": ["loss.kind=pull", "loss.lambda_gs=0"],
+           "sweep": {"loss.lambda_eik": ["0", "0.1", "1", "10"], "loss.lambda_os": ["0", "0.1", "1", "10"]}},
+    "E6": {"methods": ["ultraboneudf"], "sweep": {"data.noise_sigma_mm": ["0", "0.5", "1.0", "1.5", "2.0"]}},
+    "E7": {"methods": ["vanilla_udf", "ultraboneudf_pull", "ultraboneudf"]},
+}
+"""The experiments of docs/ALGORITHMS.md §6.4 as grids (E2, Table 4, is a report of E1's runs)."""
+
+COLUMNS = ("cell", "unit", "specimen", "method", "preset", "seed", "overrides", "status", "reason",
+           "cd_mm", "hd95_mm", "d_rg_mean_mm", "d_gr_mean_mm", "area_ratio", "nonmanifold_edges",
+           "input_far_fraction", "mesh_far_area_fraction", "preprocess_s", "train_s", "extract_s",
+           "total_s", "parameters", "faces", "version", "config_hash")
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One reconstruction of one unit with one method and its overrides."""
+
+    unit: Unit
+    method: str
+    preset: str
+    seed: int
+    overrides: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def id(self) -> str:
+        """A folder name that says what the cell is and cannot collide: unit, method, a short hash."""
+        key = json.dumps([self.unit.id, self.method, self.preset, self.seed, list(self.overrides)])
+        return f"{self.unit.id}__{self.method}__{hashlib.sha1(key.encode()).hexdigest()[:10]}"
+
+
+def plan(units: list[Unit], experiment: str | None, methods: list[str], sweeps: list[str],
+         sets: list[str], preset: str, seed: int) -> list[Cell]:
+    """The cells of an experiment (``E1`` … ``E7``) or of a grid (``methods`` × every combination of
+    the ``--sweep key=v1,v2`` values), each with the fixed ``sets``, over every unit."""
+    grid: dict[str, list[str]] = {}
+    fixed = list(sets)
+    if experiment is not None:
+        if experiment not in EXPERIMENTS:
+            raise InputError(f"unknown experiment {experiment!r}; choose one of {', '.join(EXPERIMENTS)} "
+                             f"or give --method/--sweep")
+        spec = EXPERIMENTS[experiment]
+        methods = methods or spec["methods"]
+        grid.update(spec.get("sweep", {}))
+        fixed = spec.get("set", []) + fixed
+    for item in sweeps:
+        key, _, values = item.partition("=")
+        if not key or not values:
+            raise InputError(f"--sweep expects key=v1,v2,…, got {item!r}")
+        grid[key.strip()] = [v.strip() for v in values.split(",")]
+    if not methods:
+        raise InputError("no method: give an experiment (E1 … E7) or --method")
+    combos = [tuple(f"{k}={v}" for k, v in zip(grid, values)) for values in itertools.product(*grid.values())]
+    return [Cell(u, m, preset, seed, tuple(fixed) + combo) for u in units for m in methods for combo in combos]
+
+
+def run_cells(cells: list[Cell], out: Path, *, device: str = "auto", samples: int = 300_000,
+              retry_failed: bool = False, progress: Progress = QUIET) -> dict[str, int]:
+    """Run every unfinished cell into ``out/cells/<id>/``; returns the counts ``done`` (this run),
+    ``skipped`` (finished before), ``failed`` (this run). Configurations are checked for every cell
+    before the first one runs (a bad ``--set`` stops the run at once)."""
+    from ..pipeline import configure
+
+    for cell in cells:
+        configure(cell.preset, cell.method, None, None, list(cell.overrides))
+    out.mkdir(parents=True, exist_ok=True)
+    counts = {"done": 0, "skipped": 0, "failed": 0}
+    todo = []
+    for cell in cells:
+        result = out / "cells" / cell.id / "result.json"
+        if result.exists() and not (retry_failed and json.loads(result.read_text()).get("status") == "failed"):
+            counts["skipped"] += 1
+        else:
+            todo.append(cell)
+    progress.log(f"bench: {len(cells)} cells, {counts['skipped']} finished before, {len(todo)} to run")
+    with progress.stage("cells", len(todo)) as advance:
+        for cell in todo:
+            row = _run_cell(cell, out / "cells" / cell.id, device, samples)
+            counts["failed" if row["status"] == "failed" else "done"] += 1
+            write_tables(out)
+            advance()
+    write_tables(out)
+    return counts
+
+
+def _run_cell(cell: Cell, folder: Path, device: str, samples: int) -> dict[str, Any]:
+    import ultraboneudf
+    from ..evaluation import evaluate
+
+    if folder.exists():
+        shutil.rmtree(folder)              # an unfinished cell of an earlier run: start it again
+    folder.mkdir(parents=True)
+    row: dict[str, Any] = {"cell": cell.id, "unit": cell.unit.id, "specimen": cell.unit.specimen,
+                           "method": cell.method, "preset": cell.preset, "seed": cell.seed,
+                           "overrides": " ".join(cell.overrides), "version": __version__}
+    try:
+        points, probe = _read_input(cell.unit.input)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the data-fit figures are in the row
+            rec = ultraboneudf.reconstruct(points, preset=cell.preset, device=device, seed=cell.seed,
+                                           method=cell.method, assignments=list(cell.overrides),
+                                           source=str(cell.unit.input), probe_positions=probe)
+        row["config_hash"] = hashlib.sha256(json.dumps(rec.config.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
+        row.update({k: rec.timings.get(k) for k in ("preprocess_s", "train_s", "extract_s", "total_s")})
+        row.update(parameters=rec.counts.get("parameters"), faces=rec.counts.get("faces"),
+                   input_far_fraction=rec.data_fit.get("input_far_fraction"),
+                   mesh_far_area_fraction=rec.data_fit.get("mesh_far_area_fraction"),
+                   nonmanifold_edges=rec.quality.get("nonmanifold_edges"))
+        if rec.mesh is None:
+            row.update(status="failed", reason="no surface found")
+        else:
+            rec.save(folder / "mesh.ply")
+            truth = ultraboneudf.load_mesh(cell.unit.gt)
+            raw = points if cell.unit.pseudo_gt_mm is not None else None
+            ev = evaluate(rec.mesh, truth, raw_points=raw, pseudo_gt_mm=cell.unit.pseudo_gt_mm,
+                          samples=samples, seed=0, gt_source=str(cell.unit.gt))
+            row.update({k: getattr(ev, k) for k in ("cd_mm", "hd95_mm", "d_rg_mean_mm", "d_gr_mean_mm")})
+            row["area_ratio"] = float(rec.mesh.area / truth.area)
+            row.update(status="failed" if ev.failed else "ok", reason=ev.reason)
+    except InputError as exc:
+        row.update(status="failed", reason=str(exc))
+    save_json({k: row.get(k) for k in COLUMNS}, folder / "result.json")   # last: the cell is finished
+    return row
+
+
+def _read_input(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (mm) and, from an ``.npz`` that has them, the probe positions."""
+    from ..io import load_points
+
+    if path.suffix.lower() == ".npz":
+        with np.load(path) as data:
+            if "probe" in data.files and "points" in data.files:
+                return load_points(path), np.asarray(data["probe"], dtype=np.float64)
+    if path.is_dir() or path.suffix.lower() in (".mha", ".mhd", ".nrrd"):
+        from ..sweep import sweep_to_points
+
+        cp = sweep_to_points(path)
+        return cp.points, cp.probe_position
+    return load_points(path), None
+
+
+def finished_rows(out: Path) -> list[dict[str, Any]]:
+    """The ``result.json`` rows of every finished cell under ``out``, sorted by cell id."""
+    return [json.loads(p.read_text()) for p in sorted((out / "cells").glob("*/result.json"))]
+
+
+def write_tables(out: Path) -> None:
+    """``results.csv`` and ``results.sqlite`` (table ``cells``) from the finished cells, atomically."""
+    import csv
+    import io
+
+    rows = finished_rows(out)
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=COLUMNS, lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_bytes(out / "results.csv", buf.getvalue().encode("utf-8"))
+    tmp = out / f".results.sqlite.{time.time_ns()}"
+    with sqlite3.connect(tmp) as db:
+        db.execute(f"CREATE TABLE cells ({', '.join(COLUMNS)})")
+        db.executemany(f"INSERT INTO cells VALUES ({', '.join('?' * len(COLUMNS))})",
+                       [[r.get(c) for c in COLUMNS] for r in rows])
+    db.close()
+    tmp.replace(out / "results.sqlite")

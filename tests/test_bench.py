@@ -1,0 +1,121 @@
+"""Datasets as manifests, the resumable experiment runner and its tables."""
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from ultraboneudf.bench.datasets import make_dataset
+from ultraboneudf.bench.manifest import read_manifest
+from ultraboneudf.bench.report import report
+from ultraboneudf.bench.runner import EXPERIMENTS, finished_rows, plan, run_cells
+from ultraboneudf.cli import main
+from ultraboneudf.errors import InputError
+
+QUICK = ["train.iters=150", "train.batch=500", "extract.max_depth=6", "model.hidden=32,32"]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench")
+    (root / "bones").mkdir()
+    trimesh.creation.icosphere(subdivisions=3, radius=20.0).export(root / "bones" / "ball.ply")
+    trimesh.creation.capsule(height=40, radius=10).export(root / "bones" / "capsule.ply")
+    return make_dataset("openbone", root / "bones", root / "ds", samples=2000)
+
+
+def test_openbone_units_are_the_upward_faces_sampled(dataset):
+    units = read_manifest(dataset)
+    assert [u.id for u in units] == ["ball", "capsule"] and all(u.pseudo_gt_mm is None for u in units)
+    ball = units[0]
+    points = np.load(ball.input)["points"]
+    gt = trimesh.load(ball.gt, process=False)
+    assert points.shape == (2000, 3)
+    assert (gt.face_normals[:, 2] > 0).all()                             # the part a probe above sees
+    assert gt.area == pytest.approx(2 * np.pi * 20.0 ** 2, rel=0.05)     # a hemisphere
+    assert np.abs(np.linalg.norm(points, axis=1) - 20.0).max() < 0.3 and points[:, 2].min() > -1.0
+
+
+def test_manifest_errors_name_the_file_and_line(tmp_path, dataset):
+    bad = tmp_path / "m.csv"
+    bad.write_text("id,specimen,input\nx,y,z\n")
+    with pytest.raises(InputError, match=r"m.csv: the manifest needs the columns .* \(missing: gt\)"):
+        read_manifest(bad)
+    text = dataset.read_text().splitlines()
+    bad.write_text("\n".join([text[0], text[1], text[1]]) + "\n")
+    (tmp_path / "ball.npz").write_bytes((dataset.parent / "ball.npz").read_bytes())
+    (tmp_path / "ball_gt.ply").write_bytes((dataset.parent / "ball_gt.ply").read_bytes())
+    with pytest.raises(InputError, match="line 3: duplicate id 'ball'"):
+        read_manifest(bad)
+    bad.write_text(text[0] + "\nball,ball,nothing.npz,ball_gt.ply,\n")
+    with pytest.raises(InputError, match="line 2: input 'nothing.npz' does not exist"):
+        read_manifest(bad)
+
+
+def test_the_experiments_expand_to_the_papers_grids(dataset):
+    units = read_manifest(dataset)
+    e5 = plan(units, "E5", [], [], [], "robust", 0)
+    assert len(e5) == 2 * 16 and all("loss.kind=pull" in c.overrides for c in e5)
+    assert len({c.id for c in e5}) == len(e5)
+    assert len(plan(units, "E1", [], [], [], "robust", 0)) == 2 * 5
+    assert {c.method for c in plan(units, "E7", [], [], [], "robust", 0)} == set(EXPERIMENTS["E7"]["methods"])
+    grid = plan(units, None, ["ultraboneudf", "poisson"], ["loss.lambda_gs=0,0.1", "train.lr=0.001,0.002"], [], "fast", 3)
+    assert len(grid) == 2 * 2 * 2 * 2      # units × methods × the two axes
+    with pytest.raises(InputError, match="unknown experiment 'E9'"):
+        plan(units, "E9", [], [], [], "robust", 0)
+
+
+def test_a_killed_run_resumes_without_recomputing_finished_cells(dataset, tmp_path):
+    units = read_manifest(dataset)
+    cells = plan(units, None, ["ultraboneudf"], ["loss.lambda_gs=0,0.01"], QUICK, "fast", 0)
+    out = tmp_path / "run"
+    assert run_cells(cells, out, device="cpu", samples=5000) == {"done": 4, "skipped": 0, "failed": 0}
+    rows = finished_rows(out)
+    assert len(rows) == 4 and all(r["status"] == "ok" and r["cd_mm"] < 2.0 for r in rows)
+    assert (out / "results.csv").read_text().count("\n") == 5
+    # a cell killed half-way: its mesh written, its result not — it is not finished
+    victim = out / "cells" / cells[1].id
+    first = json.loads((victim / "result.json").read_text())
+    (victim / "result.json").unlink()
+    (victim / "mesh.ply").write_bytes(b"half a mesh")
+    assert run_cells(cells, out, device="cpu", samples=5000) == {"done": 1, "skipped": 3, "failed": 0}
+    again = json.loads((victim / "result.json").read_text())
+    assert again["cd_mm"] == pytest.approx(first["cd_mm"], rel=1e-6)       # the same cell, recomputed
+    import sqlite3
+
+    with sqlite3.connect(out / "results.sqlite") as db:
+        assert db.execute("SELECT COUNT(*), SUM(status = 'ok') FROM cells").fetchone() == (4, 4)
+    table = report(out)
+    assert "ultraboneudf [loss.lambda_gs=0]" in table and "**" in table and "train.iters" not in table
+
+
+def test_cli_bench_dataset_run_report(tmp_path, capsys):
+    bones = tmp_path / "bones"
+    bones.mkdir()
+    trimesh.creation.icosphere(subdivisions=3, radius=15.0).export(bones / "ball.ply")
+    assert main(["bench", "dataset", "closedbone", str(bones), "--out", str(tmp_path / "ds"),
+                 "--samples", "2000", "--quiet"]) == 0
+    args = ["bench", "run", "--dataset", str(tmp_path / "ds" / "manifest.csv"), "--out", str(tmp_path / "r"),
+            "--method", "ultraboneudf", "--preset", "fast", "--device", "cpu", "--samples", "5000", "--quiet"]
+    for item in QUICK:
+        args += ["--set", item]
+    assert main(args) == 0
+    assert main(args) == 0
+    assert "0 cells done, 0 failed, 1 finished before" in capsys.readouterr().out
+    assert main(["bench", "report", str(tmp_path / "r"), "--format", "csv"]) == 0
+    assert "ball" in capsys.readouterr().out
+    assert main([*args[:-2], "--set", "loss.kind=bogus"]) == 2              # checked before any cell
+
+
+def test_a_users_folder_of_pairs_becomes_a_manifest(tmp_path):
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    np.savetxt(folder / "knee1.xyz", np.random.default_rng(0).normal(size=(200, 3)) * 10)
+    trimesh.creation.icosphere(radius=10).export(folder / "knee1_gt.stl")
+    np.savetxt(folder / "orphan.xyz", np.zeros((5, 3)))                  # no ground truth: left out
+    manifest = make_dataset("pairs", folder, tmp_path / "ds")
+    units = read_manifest(manifest)
+    assert [(u.id, u.input.name, u.gt.name) for u in units] == [("knee1", "knee1.xyz", "knee1_gt.stl")]
+    with pytest.raises(InputError, match="no NAME.<cloud> with a NAME_gt.<mesh>"):
+        make_dataset("pairs", tmp_path / "ds", tmp_path / "ds2")
