@@ -119,3 +119,13 @@ def test_a_users_folder_of_pairs_becomes_a_manifest(tmp_path):
     assert [(u.id, u.input.name, u.gt.name) for u in units] == [("knee1", "knee1.xyz", "knee1_gt.stl")]
     with pytest.raises(InputError, match="no NAME.<cloud> with a NAME_gt.<mesh>"):
         make_dataset("pairs", tmp_path / "ds", tmp_path / "ds2")
+
+
+def test_a_pool_of_two_workers_gives_the_same_table_as_one(dataset, tmp_path):
+    units = read_manifest(dataset)
+    cells = plan(units, None, ["ultraboneudf"], [], QUICK, "fast", 0)
+    one, two = tmp_path / "one", tmp_path / "two"
+    run_cells(cells, one, device="cpu", samples=5000)
+    assert run_cells(cells, two, device="cpu", samples=5000, workers=2) == {"done": 2, "skipped": 0, "failed": 0}
+    strip = lambda rows: [{k: v for k, v in r.items() if not k.endswith("_s")} for r in rows]  # noqa: E731
+    assert strip(finished_rows(one)) == strip(finished_rows(two))

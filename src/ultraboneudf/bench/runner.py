@@ -90,10 +90,11 @@ def plan(units: list[Unit], experiment: str | None, methods: list[str], sweeps: 
 
 
 def run_cells(cells: list[Cell], out: Path, *, device: str = "auto", samples: int = 300_000,
-              retry_failed: bool = False, progress: Progress = QUIET) -> dict[str, int]:
+              retry_failed: bool = False, workers: int = 1, progress: Progress = QUIET) -> dict[str, int]:
     """Run every unfinished cell into ``out/cells/<id>/``; returns the counts ``done`` (this run),
     ``skipped`` (finished before), ``failed`` (this run). Configurations are checked for every cell
-    before the first one runs (a bad ``--set`` stops the run at once)."""
+    before the first one runs (a bad ``--set`` stops the run at once). ``workers > 1`` runs that
+    many cells at once in a pool of processes on this machine, the CPU threads shared among them."""
     from ..pipeline import configure
 
     for cell in cells:
@@ -109,13 +110,33 @@ def run_cells(cells: list[Cell], out: Path, *, device: str = "auto", samples: in
             todo.append(cell)
     progress.log(f"bench: {len(cells)} cells, {counts['skipped']} finished before, {len(todo)} to run")
     with progress.stage("cells", len(todo)) as advance:
-        for cell in todo:
-            row = _run_cell(cell, out / "cells" / cell.id, device, samples)
+        def finished(row: dict[str, Any]) -> None:
             counts["failed" if row["status"] == "failed" else "done"] += 1
             write_tables(out)
             advance()
+
+        if workers <= 1:
+            for cell in todo:
+                finished(_run_cell(cell, out / "cells" / cell.id, device, samples))
+        else:
+            import multiprocessing
+            import os
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            threads = max(1, (os.cpu_count() or 1) // workers)
+            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                     initializer=_worker_init, initargs=(threads,)) as pool:
+                futures = [pool.submit(_run_cell, c, out / "cells" / c.id, device, samples) for c in todo]
+                for future in as_completed(futures):
+                    finished(future.result())
     write_tables(out)
     return counts
+
+
+def _worker_init(threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
 
 
 def _run_cell(cell: Cell, folder: Path, device: str, samples: int) -> dict[str, Any]:
