@@ -1,6 +1,7 @@
 """Datasets as manifests, the resumable experiment runner and its tables."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -129,3 +130,23 @@ def test_a_pool_of_two_workers_gives_the_same_table_as_one(dataset, tmp_path):
     assert run_cells(cells, two, device="cpu", samples=5000, workers=2) == {"done": 2, "skipped": 0, "failed": 0}
     strip = lambda rows: [{k: v for k, v in r.items() if not k.endswith("_s")} for r in rows]  # noqa: E731
     assert strip(finished_rows(one)) == strip(finished_rows(two))
+
+
+FEMUR = Path(__file__).resolve().parents[2] / "shared" / "data" / "bones" / "femur.ply"
+
+
+@pytest.mark.skipif(not FEMUR.exists(), reason=f"{FEMUR} not present")
+def test_the_gpu_check_runs_on_the_cpu_in_quick_mode(tmp_path):
+    """benchmarks/gpu_check.py, ready for a GPU session, with tiny budgets on the CPU."""
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_check.py"
+    res = subprocess.run([sys.executable, str(script), "--quick", "--out", str(tmp_path)],
+                         capture_output=True, text=True, timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    rows = json.loads((tmp_path / "reconstruct.json").read_text())
+    assert {r["preset"] for r in rows} == {"official", "robust"} and all(r["cd_mm"] > 0 for r in rows)
+    results = (tmp_path / "e1" / "results.csv").read_text().splitlines()
+    assert len(results) == 1 + 5                                     # one cell per method of Table 1
+    assert "**CD (mm)**" in (tmp_path / "report.md").read_text()
