@@ -3,6 +3,7 @@ the mean of specimen means (§6.1), and the paired Wilcoxon tests with Bonferron
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from ..errors import InputError
@@ -22,6 +23,12 @@ def labels(rows: list[dict]) -> list[str]:
     return out
 
 
+def _natural(text: str) -> list:
+    """Sort key that orders the numbers inside a label by value (σ = 0, 0.5, 1.0, 1.5, 2.0, 10)."""
+    parts = re.split(r"(-?\d+(?:\.\d+)?(?:e-?\d+)?)", text)
+    return [(0, float(p), "") if i % 2 else (1, 0.0, p) for i, p in enumerate(parts)]
+
+
 def records(out: Path) -> list[Record]:
     """One :class:`Record` per finished cell (failures as ``None``)."""
     rows = finished_rows(out)
@@ -36,9 +43,10 @@ def report(out: Path, fmt: str = "md", baseline: str | None = None, decimals: in
     """The CD and HD95 tables (and, with ``baseline``, its Wilcoxon tests against every other
     method, Bonferroni over their number) in ``fmt`` (``md``, ``csv``, ``latex``)."""
     recs = records(out)
+    rows = sorted({r.method for r in recs}, key=_natural)
     parts = []
     for metric in ("cd_mm", "hd95_mm"):
-        parts.append(format_table(results_table(recs, metric, decimals=decimals), fmt))
+        parts.append(format_table(results_table(recs, metric, methods=rows, decimals=decimals), fmt))
     if baseline is not None:
         for metric in ("cd_mm", "hd95_mm"):
             comps = compare_to_baseline(recs, baseline, metric, source=str(out))
