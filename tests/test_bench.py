@@ -89,6 +89,7 @@ def test_a_killed_run_resumes_without_recomputing_finished_cells(dataset, tmp_pa
         assert db.execute("SELECT COUNT(*), SUM(status = 'ok') FROM cells").fetchone() == (4, 4)
     table = report(out)
     assert "ultraboneudf [loss.lambda_gs=0]" in table and "**" in table and "train.iters" not in table
+    assert "Parameters and runtime" in table and "| 1282 |" in table   # (32, 32) with weight norm: 1,282
 
 
 def test_cli_bench_dataset_run_report(tmp_path, capsys):

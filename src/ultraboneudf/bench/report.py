@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..evaluation.stats import Record, compare_to_baseline
-from ..evaluation.tables import comparisons_table, format_table, results_table
+from ..evaluation.tables import Table, comparisons_table, format_table, results_table
 from .runner import finished_rows
 
 
@@ -47,8 +47,31 @@ def report(out: Path, fmt: str = "md", baseline: str | None = None, decimals: in
     parts = []
     for metric in ("cd_mm", "hd95_mm"):
         parts.append(format_table(results_table(recs, metric, methods=rows, decimals=decimals), fmt))
+    parts.append(format_table(cost_table(out, rows), fmt))
     if baseline is not None:
         for metric in ("cd_mm", "hd95_mm"):
             comps = compare_to_baseline(recs, baseline, metric, source=str(out))
             parts.append(format_table(comparisons_table(comps), fmt, first_header="competitor"))
     return "\n\n".join(parts) + "\n"
+
+
+def cost_table(out: Path, order: list[str] | None = None) -> Table:
+    """Table 4 of the paper (experiment E2): per row label, the trainable parameters and the mean
+    seconds of training and of the whole reconstruction over its finished cells (failures included:
+    they cost time too)."""
+    import statistics
+
+    rows = finished_rows(out)
+    groups: dict[str, list[dict]] = {}
+    for r, name in zip(rows, labels(rows)):
+        groups.setdefault(name, []).append(r)
+    mean = lambda vals: statistics.fmean(vals) if vals else None  # noqa: E731
+    table_rows = []
+    for name in order or sorted(groups, key=_natural):
+        g = groups.get(name, [])
+        params = [r["parameters"] for r in g if r.get("parameters") is not None]
+        table_rows.append((name, [mean(params), mean([r["train_s"] for r in g if r.get("train_s") is not None]),
+                                  mean([r["total_s"] for r in g if r.get("total_s") is not None]), float(len(g))]))
+    return Table(title="Parameters and runtime (s, mean per reconstruction)",
+                 columns=["parameters", "train s", "total s", "cells"], rows=table_rows,
+                 bold=[[False] * 4 for _ in table_rows], decimals=1, integer_columns=(0, 3))
