@@ -156,7 +156,8 @@ def _run_cell(cell: Cell, folder: Path, device: str, samples: int) -> dict[str, 
             rec = ultraboneudf.reconstruct(points, preset=cell.preset, device=device, seed=cell.seed,
                                            method=cell.method, assignments=list(cell.overrides),
                                            source=str(cell.unit.input), probe_positions=probe)
-        row["config_hash"] = hashlib.sha256(json.dumps(rec.config.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
+        resolved = json.dumps(rec.config.to_dict(), sort_keys=True).encode()
+        row["config_hash"] = hashlib.sha256(resolved).hexdigest()[:16]
         row.update({k: rec.timings.get(k) for k in ("preprocess_s", "train_s", "extract_s", "total_s")})
         row.update(parameters=rec.counts.get("parameters"), faces=rec.counts.get("faces"),
                    input_far_fraction=rec.data_fit.get("input_far_fraction"),
