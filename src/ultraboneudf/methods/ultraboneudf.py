@@ -12,7 +12,6 @@ import torch
 from ..config import Config, check_choices, model_widths
 from ..errors import InputError
 from ..fields.mlp import DistanceMLP, MLPField, count_parameters
-from ..geometry.neighbors import NearestIndex
 from ..geometry.support import DataSurface
 from ..geometry.surface_fit import LocalPlanes
 from ..geometry.queries import anchors, gaussian_queries, grid_queries, query_spread, surface_subset_index
