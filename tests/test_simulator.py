@@ -208,3 +208,18 @@ def test_robustness_levels_exist():
     assert (hard.pred_beam_noise_mm, hard.pred_fp_fraction, hard.frame_spacing_mm) == (0.8, 0.03, 1.5)
     assert hard.missing_runs == 3 and hard.tracking_noise_mm == hard.tracking_noise_deg == 0.3
     assert config_with_noise("moderate").pred_beam_noise_mm == 0.3
+
+
+def test_simulate_set_values_take_the_options_own_types(tmp_path, capsys):
+    from ultraboneudf.cli import main
+    from ultraboneudf.cli.cmd_simulate import parse_assignments
+
+    assert parse_assignments(["n_frames=none", "sweep_axis=1,0,0", "missing_runs=2", "tilt_deg=3"]) == \
+        {"n_frames": None, "sweep_axis": (1.0, 0.0, 0.0), "missing_runs": 2, "tilt_deg": 3.0}
+    mesh = tmp_path / "ball.ply"
+    trimesh.creation.icosphere(radius=10).export(mesh)
+    for item, words in (("seed=1.5", "'seed' (expected an integer)"), ("bogus=1", "unknown simulator option 'bogus'"),
+                        ("width_px", "expected KEY=VALUE")):
+        assert main(["simulate", str(mesh), "-o", str(tmp_path / "out"), "--set", item]) == 2
+        err = capsys.readouterr().err
+        assert words in err and len(err.strip().splitlines()) == 1

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import types
 import typing
 from dataclasses import dataclass, field, fields
 from functools import cache
@@ -577,16 +578,32 @@ def _resolve_key(cfg: Config, key: str) -> tuple[Any, str]:
     return owners[0], key
 
 
+def _optional(hint: Any) -> Any:
+    """``X`` for a hint ``X | None`` (``Optional[X]``), else ``None``."""
+    args = typing.get_args(hint)
+    if typing.get_origin(hint) in (typing.Union, types.UnionType) and len(args) == 2 and type(None) in args:
+        return next(a for a in args if a is not type(None))
+    return None
+
+
 def _expected(hint: Any) -> str:
     """How a value of type ``hint`` is written on the command line (for error messages)."""
+    if _optional(hint) is not None:
+        return _expected(_optional(hint)) + " or none"
     if typing.get_origin(hint) is tuple:
         inner = typing.get_args(hint)[0]
         return "comma-separated " + ("integers" if inner is int else "numbers")
     return {bool: "true or false", int: "an integer", float: "a number"}.get(hint, "a string")
 
 
-def _coerce(hint: Any, value: Any, key: str) -> Any:
-    """Convert ``value`` (possibly a string from the command line) to the type ``hint`` of a field."""
+def coerce(hint: Any, value: Any, key: str) -> Any:
+    """Convert ``value`` (possibly a string from the command line) to the type ``hint`` of a
+    dataclass field (``bool``, ``int``, ``float``, ``str``, ``tuple[...]``, or one of them ``| None``,
+    written ``none``); :class:`InputError` naming ``key`` and the expected type otherwise."""
+    if _optional(hint) is not None:
+        if value is None or (isinstance(value, str) and value.strip().lower() in ("none", "null")):
+            return None
+        return coerce(_optional(hint), value, key)
     try:
         if typing.get_origin(hint) is tuple:
             if isinstance(value, str):
@@ -594,7 +611,7 @@ def _coerce(hint: Any, value: Any, key: str) -> Any:
             if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__"):
                 raise ValueError(value)
             inner = typing.get_args(hint)[0]
-            return tuple(_coerce(inner, v, key) for v in value)
+            return tuple(coerce(inner, v, key) for v in value)
         if hint is bool:
             if isinstance(value, str):
                 low = value.strip().lower()
@@ -624,7 +641,7 @@ def _coerce(hint: Any, value: Any, key: str) -> Any:
 def _set(cfg: Config, key: str, value: Any) -> None:
     obj, name = _resolve_key(cfg, key)
     hint = _hints(type(obj))[name]
-    value = _coerce(str if choices(obj, name) else hint, value, key)
+    value = coerce(str if choices(obj, name) else hint, value, key)
     _check_choice(obj, name, value)
     setattr(obj, name, value)
 

@@ -38,13 +38,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _parse_value(text: str):
-    if "," in text:
-        return tuple(float(v) for v in text.split(","))
-    try:
-        return int(text)
-    except ValueError:
-        return float(text)
+def parse_assignments(items: list[str]) -> dict:
+    """``KEY=VALUE`` strings → simulator options of the fields' own types (the configuration's
+    coercion: numbers, ``a,b,c`` tuples, ``none``); :class:`InputError` for a bad item, key or value."""
+    import typing
+
+    from ..config import coerce
+    from ..synth.sweep_config import SimulationConfig
+
+    hints = typing.get_type_hints(SimulationConfig)
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep:
+            raise InputError(f"--set {item!r}: expected KEY=VALUE")
+        if key not in hints:
+            raise InputError(f"--set {item!r}: unknown simulator option {key!r}; options: {', '.join(hints)}")
+        out[key] = coerce(hints[key], value.strip(), key)
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -56,15 +68,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"{out}: exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not args.force:
         raise InputError(f"{out}: folder exists and is not empty (use --force to write into it)")
-    overrides = {}
-    for item in args.assignments:
-        if "=" not in item:
-            raise InputError(f"--set {item!r}: expected KEY=VALUE")
-        k, v = item.split("=", 1)
-        try:
-            overrides[k.strip()] = _parse_value(v.strip())
-        except ValueError:
-            raise InputError(f"--set {item!r}: {v!r} is not a number") from None
+    overrides = parse_assignments(args.assignments)
     for key, value in (("n_frames", args.frames), ("frame_spacing_mm", args.frame_spacing),
                        ("spacing_mm", args.spacing_mm), ("width_px", args.width_px),
                        ("height_px", args.height_px)):
