@@ -439,9 +439,9 @@ def _paper() -> Config:
 def _fast() -> Config:
     """Designed for a 100k-point cloud on a 2-core CPU (see README, "Presets").
 
-    Measured on the open femur (the input of the tests and the README). What limits a short run is the number of optimiser
-    steps: the tangent loss grows the zero set outward from the initial sphere, and 2,000 steps ×
-    2,000 queries left the epiphyses without one (CD 3.4 mm). A warm start (1,000 steps regressing
+    Measured on the open femur (the tests' and README's input). What limits a short run is the
+    number of optimiser steps: the tangent loss grows the zero set outward from the initial sphere,
+    and 2,000 steps × 2,000 queries left the epiphyses without one (CD 3.4 mm). A warm start (1,000 steps regressing
     u on the distance to P) puts a zero set near every part of the bone first; without it one seed
     in two lost an epiphysis. The far-field term (λ_far = 1) keeps regressing u on that distance
     more than 0.01 (4.5 mm on the femur) from P, which halved the faithful-mode CD of a bad seed

@@ -54,11 +54,7 @@ def validate_points(points: Any, source: str = "points", min_points: int = MIN_P
         first = int(np.flatnonzero(bad)[0])
         raise InputError(f"{source}: {int(bad.sum())} point(s) contain NaN or Inf "
                          f"(first at point {first})")
-    far = np.abs(arr).max(axis=1) >= MAX_COORDINATE_MM  # before any numerics: 1e30 overflows them
-    if far.any():
-        raise InputError(f"{source}: {int(far.sum())} point(s) have a coordinate beyond ±10⁶ mm (1 km), "
-                         f"e.g. point {int(np.flatnonzero(far)[0])}: {arr[far][0].tolist()}; the points "
-                         f"cannot be a bone scan in mm")
+    _check_coordinates(arr, source)   # before any numerics: a coordinate of 1e30 overflows them
     if len(arr) < min_points:
         raise InputError(f"{source}: only {len(arr)} points; at least {min_points} are needed")
     centred = arr - arr.mean(axis=0)
@@ -70,14 +66,20 @@ def validate_points(points: Any, source: str = "points", min_points: int = MIN_P
     return arr
 
 
+def _check_coordinates(points: np.ndarray, source: str) -> None:
+    """Raise :class:`InputError` when a coordinate of ``points`` (N, 3) is ±10⁶ mm or beyond."""
+    far = np.abs(points).max(axis=1) >= MAX_COORDINATE_MM
+    if far.any():
+        raise InputError(f"{source}: {int(far.sum())} point(s) have a coordinate beyond ±10⁶ mm (1 km), "
+                         f"e.g. point {int(np.flatnonzero(far)[0])}: {points[far][0].tolist()}; the points "
+                         f"cannot be a bone scan in mm")
+
+
 def check_units(points: np.ndarray, source: str = "points") -> None:
     """Raise :class:`InputError` when ``points`` (N, 3), meant to be millimetres, cannot be: a
     coordinate beyond 10⁶ mm, or an extent outside :data:`PLAUSIBLE_EXTENT_MM` — naming the unit
     the numbers look like and the option that converts them."""
-    far = float(np.abs(points).max())
-    if far >= MAX_COORDINATE_MM:
-        raise InputError(f"{source}: a coordinate of {far:.3g} mm is beyond ±10⁶ mm (1 km); the "
-                         f"points cannot be a bone scan in mm")
+    _check_coordinates(points, source)
     extent = float(np.ptp(points, axis=0).max())
     lo, hi = PLAUSIBLE_EXTENT_MM
     if extent < lo:

@@ -220,8 +220,7 @@ class LoopLog:
         """Seconds since the start and the history as plain lists (one host read)."""
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
-        seconds = time.perf_counter() - self.start
-        return seconds, {k: torch.stack(v).cpu().tolist() for k, v in self.terms.items()}
+        return self.elapsed(), self.history_so_far()
 
 
 def _duration(seconds: float, fine: bool = False) -> str:
@@ -363,7 +362,7 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
     threads = train_cfg.threads if device.type == "cpu" else 0
     with cpu_threads(threads), progress.stage("training", iters, start=start) as advance:
         # the pace of the last phase: after the warm start, and after CAP-UDF's larger second batch
-        steady = max(warm_steps, train_cfg.expand_at if expand is not None else 0, start)
+        steady = max(warm_steps, train_cfg.expand_at if expands else 0, start)
         log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr, progress=progress,
                       steady_from=steady)
         if resumed is not None:

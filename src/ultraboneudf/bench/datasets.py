@@ -10,13 +10,14 @@
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
-from ..io import MESH_SUFFIXES, POINT_READERS, load_mesh, save_mesh
+from ..io import MESH_SUFFIXES, POINT_READERS, atomic_write_bytes, load_mesh, save_mesh
 from ..progress import QUIET, Progress
 from .manifest import Unit, write_manifest
 
@@ -31,10 +32,6 @@ def _meshes(folder: Path) -> list[Path]:
 
 
 def _save_points(path: Path, points: np.ndarray, probe: np.ndarray | None = None) -> None:
-    import io
-
-    from ..io import atomic_write_bytes
-
     buf = io.BytesIO()
     np.savez(buf, points=points, **({} if probe is None else {"probe": probe}))
     atomic_write_bytes(path, buf.getvalue())
