@@ -171,7 +171,9 @@ def test_ctrl_c_at_each_stage_leaves_no_output(tmp_path, stage, sweep):
     env = {**os.environ, "ULTRABONEUDF_PROGRESS_S": "0"}
     proc = subprocess.Popen([sys.executable, "-m", "ultraboneudf.cli", "reconstruct", str(src), "-o", str(out),
                              "--preset", "fast", "--set", "extract.min_leaf_mm=0", "--set", "extract.max_depth=9"],
-                            stderr=subprocess.PIPE, text=True, env=env)
+                            stderr=subprocess.PIPE, text=True, env=env,
+                            # a runner started in the background hands its children SIGINT ignored
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     seen = []
     for line in proc.stderr:
         seen.append(line)

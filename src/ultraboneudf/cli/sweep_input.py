@@ -50,6 +50,10 @@ def add_sweep_options(p: argparse.ArgumentParser) -> None:
                    help="classical detector: keep echoes that no neighbouring frame confirms")
     g.add_argument("--threshold", type=float, default=0.5,
                    help="learned model: probability threshold (default 0.5)")
+    g.add_argument("--align-frames", action="store_true",
+                   help="register each frame rigidly to its neighbouring frames before "
+                        "reconstruction (removes per-frame tracking error from densely sampled "
+                        "sweeps; frames more than a few mm apart are left as tracked)")
 
 
 def parse_kv(items: list[str], option: str = "--detector") -> dict[str, float]:
@@ -74,6 +78,8 @@ def sweep_options_given(args: argparse.Namespace) -> list[str]:
         given.append("segment")
     if getattr(args, "detector", None):
         given.append("detector")
+    if getattr(args, "align_frames", False):
+        given.append("align_frames")
     return ["--" + g.replace("_", "-") for g in given]
 
 
@@ -123,7 +129,7 @@ def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, to
     Raises :class:`InputError` (one line, naming the file) for a sweep without 3-D extent, for no
     bone found, and for anything its reader rejects.
     """
-    from ..sweep import read_sweep, segment_sweep, sweep_to_points
+    from ..sweep import align_frames, read_sweep, segment_sweep, sweep_to_points
     from ..sweep.bone import classical_bone_masks
     from ..sweep.chain import frames_coplanar
     from ..sweep.readers.images import load_mask_stack
@@ -185,6 +191,10 @@ def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, to
                          outlier_std=outlier_std, progress=progress)
     if frame_step > 1:
         cp.frame_index = cp.frame_index * frame_step
+    if args.align_frames:
+        cp, report = align_frames(cp)
+        info["alignment"] = report.as_dict()
+        progress.log(f"{path.name}: {report.summary()}")
     d = cp.depth_mm
     info["points"] = {"count": len(cp), "frames_with_bone": int(len(np.unique(cp.frame_index))),
                       "depth_mm_median": round(float(np.median(d)), 3),

@@ -35,6 +35,7 @@ mm, before normalisation).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -159,30 +160,53 @@ def _fit_at(pts: np.ndarray, rows: np.ndarray, radius: float, view: np.ndarray |
         dist, idx = dist.reshape(len(p), k), idx.reshape(len(p), k)
         inside = np.isfinite(dist)
         nb = cloud[np.minimum(idx, len(cloud) - 1)]                        # (C, k, 3)
-        base = np.where(inside, np.exp(-0.5 * (dist / (radius / 2.0)) ** 2), 0.0)
-        weight = base
-        for round_ in range(_ROBUST_ROUNDS + 1):
-            wsum = np.maximum(weight.sum(axis=1), 1e-300)
-            centre = np.einsum("ck,cki->ci", weight, nb) / wsum[:, None]
-            d = nb - centre[:, None]
-            cov = np.einsum("ck,cki,ckj->cij", weight, d, d) / wsum[:, None, None]
-            vals, vecs = np.linalg.eigh(cov)                               # ascending
-            nrm = vecs[:, :, 0]
-            r = np.einsum("cki,ci->ck", d, nrm)
-            # robust scale for the re-weighting: the median distance from the plane (an echo among
-            # the neighbours does not inflate it as an RMS would)
-            sd = np.nan_to_num(1.4826 * np.nanmedian(np.where(inside, np.abs(r), np.nan), axis=1))
-            if round_ < _ROBUST_ROUNDS:
-                scale = np.maximum(_ROBUST_SCALE * sd, 1e-12 * radius)[:, None]
-                weight = base * np.exp(-0.5 * (r / scale) ** 2)
-        c = inside.sum(axis=1)
-        good = (c >= _MIN_NEIGHBORS) & (vals[:, 1] >= _SPAN * np.maximum(vals[:, 2], 1e-300))
-        if view is not None:
-            good &= np.abs(np.einsum("ci,ci->c", nrm, view[sl])) >= _MAX_INCIDENCE_COS
-        normal[sl], count[sl], ok[sl] = nrm, c, good
-        own = p - centre
-        offset[sl] = np.einsum("ci,ci->c", own, nrm) - _quadric_height(d, weight, vecs, own)
+        fit = robust_quadric_fit(p, nb, dist, inside, radius, None if view is None else view[sl])
+        normal[sl], offset[sl], count[sl], ok[sl] = fit.normal, fit.offset, fit.count, fit.accepted
     return normal, offset, count, ok
+
+
+class QuadricFit(NamedTuple):
+    """:func:`robust_quadric_fit` of ``C`` points with ``k`` neighbours each."""
+
+    normal: np.ndarray    # (C, 3) the plane's unit normal (sign arbitrary)
+    offset: np.ndarray    # (C,) signed height of each point above its neighbours' quadric
+    count: np.ndarray     # (C,) neighbours used
+    accepted: np.ndarray  # (C,) bool: enough neighbours, spread in both directions, facing the view
+
+
+def robust_quadric_fit(p: np.ndarray, nb: np.ndarray, dist: np.ndarray, inside: np.ndarray,
+                       radius: float, view: np.ndarray | None = None, quadric: bool = True) -> QuadricFit:
+    """The robust local fit of the module docstring for ``C`` points ``p`` (C, 3) from their
+    neighbours ``nb`` (C, k, 3) at distances ``dist`` (C, k), of which ``inside`` (C, k) count.
+
+    ``quadric=False`` measures the offset from the plane instead of the quadric."""
+    base = np.where(inside, np.exp(-0.5 * (dist / (radius / 2.0)) ** 2), 0.0)
+    weight = base
+    for round_ in range(_ROBUST_ROUNDS + 1):
+        wsum = np.maximum(weight.sum(axis=1), 1e-300)
+        centre = np.einsum("ck,cki->ci", weight, nb) / wsum[:, None]
+        d = nb - centre[:, None]
+        cov = np.einsum("ck,cki,ckj->cij", weight, d, d) / wsum[:, None, None]
+        vals, vecs = np.linalg.eigh(cov)                               # ascending
+        nrm = vecs[:, :, 0]
+        r = np.einsum("cki,ci->ck", d, nrm)
+        # robust scale for the re-weighting: the median distance from the plane (an echo among
+        # the neighbours does not inflate it as an RMS would)
+        dev = np.where(inside, np.abs(r), np.nan)
+        dev[~inside.any(axis=1)] = 0.0  # no neighbour: scale 0 (as NaN → 0, without a warning)
+        sd = np.nan_to_num(1.4826 * np.nanmedian(dev, axis=1))
+        if round_ < _ROBUST_ROUNDS:
+            scale = np.maximum(_ROBUST_SCALE * sd, 1e-12 * radius)[:, None]
+            weight = base * np.exp(-0.5 * (r / scale) ** 2)
+    count = inside.sum(axis=1)
+    good = (count >= _MIN_NEIGHBORS) & (vals[:, 1] >= _SPAN * np.maximum(vals[:, 2], 1e-300))
+    if view is not None:
+        good &= np.abs(np.einsum("ci,ci->c", nrm, view)) >= _MAX_INCIDENCE_COS
+    own = p - centre
+    offset = np.einsum("ci,ci->c", own, nrm)
+    if quadric:
+        offset = offset - _quadric_height(d, weight, vecs, own)
+    return QuadricFit(nrm, offset, count, good)
 
 
 def _quadric_height(d: np.ndarray, weight: np.ndarray, vecs: np.ndarray, own: np.ndarray) -> np.ndarray:

@@ -10,9 +10,11 @@ Pieces: :class:`Sweep` (frames + poses in memory), readers/writers by layout
 Slicer ``.seq.nrrd``), the PLUS pose chain and calibrations (:mod:`.chain`,
 :func:`read_calibration`), :class:`BoneDetector` and :func:`classical_bone_masks` (classical
 segmentation with the frame-to-frame consistency filter), :class:`LearnedSegmenter`
-(TorchScript/ONNX plug-in), :func:`compound` (mask pixels → world mm), outlier removal.
+(TorchScript/ONNX plug-in), :func:`compound` (mask pixels → world mm), outlier removal,
+:func:`align_frames` (each frame rigidly registered to its neighbours against tracking error).
 """
 
+from .align import AlignmentReport, align_frames
 from .bone import classical_bone_masks
 from .calibration import Calibration, read_calibration
 from .compound import CompoundedPoints, compound, top_boundary
@@ -29,4 +31,5 @@ __all__ = [
     "BoneDetector", "segment_bone", "LearnedSegmenter", "load_model", "segment_sweep",
     "CompoundedPoints", "compound", "top_boundary", "statistical_outlier_mask", "radius_outlier_mask",
     "sweep_to_points", "points_from_sweep", "rigid_from_euler", "check_rigid", "pixels_to_world",
+    "align_frames", "AlignmentReport",
 ]
