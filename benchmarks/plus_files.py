@@ -96,6 +96,8 @@ def figure(sweep_path: Path, cal: Path | None, mesh_path: Path, out: Path, crop=
 
 
 def main() -> int:
+    from ultraboneudf.io import sidecar_path
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--plus", type=Path, default=PLUS)
     ap.add_argument("--out", type=Path, default=Path("plus_runs"))
@@ -119,7 +121,7 @@ def main() -> int:
             mesh = args.out / f"{RECONSTRUCT[name]}.ply"
             cmd = ["reconstruct", args.plus / name, *cal, "-o", mesh, "--quiet"]
             code, out, err, dt = cli(*cmd)
-            side = json.loads(mesh.with_suffix(".json").read_text()) if code == 0 else {}
+            side = json.loads(sidecar_path(mesh).read_text()) if code == 0 else {}
             rec = {"file": name, "command": "ultraboneudf " + " ".join(
                 str(c).replace(str(args.plus) + "/", "../shared/data/plus/") for c in cmd),
                 "exit": code, "seconds": round(dt, 1), "stderr": err.strip(),

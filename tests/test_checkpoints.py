@@ -131,8 +131,8 @@ def test_cli_run_killed_by_sigterm_resumes_to_the_same_mesh(tmp_path):
     assert res.returncode == 0, res.stderr
     assert "resumed from" in res.stderr and not ckpt.exists()     # removed once the mesh is written
     assert killed.read_bytes() == out.read_bytes()
-    side = json.loads((tmp_path / "resumed.json").read_text())
-    whole = json.loads((tmp_path / "whole.json").read_text())
+    side = json.loads((tmp_path / "resumed.ply.json").read_text())
+    whole = json.loads((tmp_path / "whole.ply.json").read_text())
     assert side["loss_history"] == whole["loss_history"] and len(side["loss_history"]["total"]) == 31
 
 
@@ -146,10 +146,14 @@ def test_methods_without_the_shared_loop_refuse_checkpoints_before_any_work(tmp_
         assert len(res.stderr.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize("stage,sweep", [("read frames", True), ("segment", True), ("training", False),
-                                         ("UDF clean", False)])
-def test_ctrl_c_at_each_stage_leaves_no_output(tmp_path, stage, sweep):
-    """SIGINT as soon as a stage reports: exit 130, neither mesh nor sidecar nor a stray temporary."""
+@pytest.mark.parametrize("stage,sweep,sig", [
+    pytest.param(stage, sweep, sig, id=f"{stage}-{sig.name}")
+    for stage, sweep, sig in [("read frames", True, signal.SIGINT), ("segment", True, signal.SIGINT),
+                              ("training", False, signal.SIGINT), ("UDF clean", False, signal.SIGINT),
+                              ("read frames", True, signal.SIGTERM), ("UDF clean", False, signal.SIGTERM)]])
+def test_a_signal_at_each_stage_leaves_no_output(tmp_path, stage, sweep, sig):
+    """SIGINT (Ctrl-C) as soon as a stage reports: exit 130 and one line; SIGTERM (a scheduler, a
+    shutdown): the process ends at once. Either way neither mesh nor sidecar nor a stray temporary."""
     import os
 
     from ultraboneudf.sweep import Sweep, write_sweep
@@ -178,10 +182,13 @@ def test_ctrl_c_at_each_stage_leaves_no_output(tmp_path, stage, sweep):
     for line in proc.stderr:
         seen.append(line)
         if line.startswith(f"{stage}:"):
-            proc.send_signal(signal.SIGINT)
+            proc.send_signal(sig)
             break
     rest = proc.communicate(timeout=120)[1]
     assert any(s.startswith(f"{stage}:") for s in seen), "".join(seen)[-2000:]
-    assert proc.returncode == 130, "".join(seen) + rest
-    assert "interrupted" in rest and "Traceback" not in rest
+    if sig == signal.SIGINT:
+        assert proc.returncode == 130, "".join(seen) + rest
+        assert "interrupted" in rest and "Traceback" not in rest
+    else:
+        assert proc.returncode == -signal.SIGTERM, "".join(seen) + rest
     assert list(out.parent.iterdir()) == []

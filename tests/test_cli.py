@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from ultraboneudf.cli import main
+from ultraboneudf.io import sidecar_path
 
 SMALL = ["--iters", "300", "--set", "train.batch=1000", "--set", "extract.max_depth=7",
          "--set", "model.hidden=64,64,64", "--quiet"]
@@ -37,7 +38,7 @@ def test_reconstruct_writes_mesh_and_sidecar(tmp_path, capsys):
     src = _cloud(tmp_path / "in.xyz")
     before = src.read_bytes()
     assert main(["reconstruct", str(src), "-o", str(tmp_path / "out.ply"), "--preset", "fast", *SMALL]) == 0
-    side = json.loads((tmp_path / "out.json").read_text())
+    side = json.loads((tmp_path / "out.ply.json").read_text())
     # 300 steps stop short of the open edges: the self-check warns about the input the mesh misses,
     # even with --quiet, and only about what the sidecar's data_fit shows
     fit, err = side["data_fit"], capsys.readouterr().err.splitlines()
@@ -90,7 +91,7 @@ def test_bad_input_one_line_exit_2_no_output(tmp_path, case, message):
     assert len(lines) == 1 and message in lines[0] and "Traceback" not in res.stderr
     if case != "missing":
         assert str(src.name) in lines[0] or case in ("outext", "set")
-    assert not out.exists() and not out.with_suffix(".json").exists()
+    assert not out.exists() and not sidecar_path(out).exists()
 
 
 def test_usage_error_exit_2():

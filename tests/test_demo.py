@@ -24,10 +24,10 @@ def test_demo_writes_everything(tmp_path, capsys):
                  "--set", "train.batch=1000", "--set", "extract.max_depth=7"]) == 0
     printed = capsys.readouterr().out
     assert "Chamfer distance to the known truth" in printed
-    for name in ("demo_points.xyz", "demo_truth.ply", "demo_mesh.ply", "demo_mesh.json", "demo_eval.json",
+    for name in ("demo_points.xyz", "demo_truth.ply", "demo_mesh.ply", "demo_mesh.ply.json", "demo_eval.json",
                  "demo_mesh.png"):
         assert (out / name).stat().st_size > 0, name
-    side = json.loads((out / "demo_mesh.json").read_text())
+    side = json.loads((out / "demo_mesh.ply.json").read_text())
     assert side["preset"] == "robust" and side["config"]["extract"]["mode"] == "clean"
     ev = json.loads((out / "demo_eval.json").read_text())
     assert ev["failed"] is False and 0 < ev["cd_mm"] < 5.0

@@ -117,15 +117,16 @@ def test_coordinates_beyond_a_kilometre_are_refused_before_the_numerics():
 
 
 def test_an_os_error_while_reading_is_one_line(tmp_path, monkeypatch):
-    """Permission denied cannot be produced as root (CI): the reader's OSError is raised here."""
+    """A failing disk (EIO) while reading: the reader's OSError is raised here (the permission case
+    runs for real in test_outputs.py)."""
     from ultraboneudf import io as uio
 
     path = tmp_path / "locked.xyz"
     np.savetxt(path, _cloud())
 
-    def denied(p):
-        raise PermissionError(13, "Permission denied", str(p))
+    def failing(p):
+        raise OSError(5, "Input/output error", str(p))
 
-    monkeypatch.setitem(uio.POINT_READERS, ".xyz", denied)
-    with pytest.raises(InputError, match=r"locked.xyz: cannot read the file \(Permission denied\)"):
+    monkeypatch.setitem(uio.POINT_READERS, ".xyz", failing)
+    with pytest.raises(InputError, match=r"locked.xyz: cannot read the file \(Input/output error\)"):
         load_points(path)

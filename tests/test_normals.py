@@ -14,6 +14,7 @@ from scipy.spatial import cKDTree
 import ultraboneudf
 from ultraboneudf import pipeline
 from ultraboneudf.cli import main
+from ultraboneudf.io import sidecar_path
 from ultraboneudf.errors import InputError
 from ultraboneudf.geometry.normals import orient_tangent_plane, orient_toward, pca_normals
 from ultraboneudf.geometry.voxel import voxel_downsample, voxel_downsample_with
@@ -168,7 +169,7 @@ def test_cli_reconstruct_sweep_orients_toward_the_probe(stub_solver, tmp_path):
     # the stub solver's mesh (a unit icosahedron) is nowhere near the data: no support trim
     assert main(["reconstruct", str(tmp_path / "sw"), "-o", str(out), "--method", "poisson", "--quiet",
                  "--set", "extract.trim_mm=0"]) == 0
-    side = json.loads(out.with_suffix(".json").read_text())
+    side = json.loads(sidecar_path(out).read_text())
     assert side["method_info"]["poisson_orientation"] == "probe"
     _, normals = stub_solver[-1]
     assert (normals[:, 1] < -0.99).all()  # back up the beam, toward the probe at y = 0

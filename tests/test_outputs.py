@@ -14,7 +14,7 @@ import trimesh
 
 from ultraboneudf.cli import main
 from ultraboneudf.errors import InputError
-from ultraboneudf.io import check_outputs, save_mesh_with_sidecar
+from ultraboneudf.io import check_outputs, save_mesh_with_sidecar, sidecar_path
 
 FAST = ["--preset", "fast", "--iters", "200", "--set", "train.batch=1000", "--set", "extract.max_depth=6",
         "--set", "model.hidden=32,32", "--quiet"]
@@ -41,7 +41,7 @@ def test_the_input_is_never_the_output(tmp_path, capsys):
     before = src.read_bytes()
     assert main(["reconstruct", str(src), "-o", str(src), *FAST]) == 2
     _one_error(capsys, "good.ply", "is the input")
-    assert src.read_bytes() == before and not (tmp_path / "good.json").exists()
+    assert src.read_bytes() == before and not (tmp_path / "good.ply.json").exists()
     # nor any file inside a sweep folder being read
     sweep = tmp_path / "sweep"
     sweep.mkdir()
@@ -53,12 +53,19 @@ def test_a_foreign_file_is_never_replaced(tmp_path, capsys):
     src = _cloud_ply(tmp_path / "in.ply")
     folder = tmp_path / "sweep"
     folder.mkdir()
+    # the sidecar of calibration.ply is calibration.ply.json, never the sweep's calibration.json
     calibration = folder / "calibration.json"
     calibration.write_text('{"rotation": [1, 2, 3]}')
-    assert main(["reconstruct", str(src), "-o", str(folder / "calibration.ply"), *FAST]) == 2
-    _one_error(capsys, "calibration.json", "not a sidecar of ultraboneudf")
+    assert main(["reconstruct", str(src), "-o", str(folder / "calibration.ply"), *FAST]) == 0
     assert calibration.read_text() == '{"rotation": [1, 2, 3]}'
-    assert not (folder / "calibration.ply").exists()
+    assert json.loads((folder / "calibration.ply.json").read_text())["mesh"] == "calibration.ply"
+    capsys.readouterr()
+    # a file of someone else's at the sidecar's name is not replaced
+    theirs = folder / "knee.ply.json"
+    theirs.write_text('{"notes": "mine"}')
+    assert main(["reconstruct", str(src), "-o", str(folder / "knee.ply"), *FAST]) == 2
+    _one_error(capsys, "knee.ply.json", "not a sidecar of ultraboneudf")
+    assert theirs.read_text() == '{"notes": "mine"}' and not (folder / "knee.ply").exists()
     # a mesh the user made (no sidecar of ours) is not replaced either
     theirs = tmp_path / "bone.ply"
     trimesh.creation.box().export(theirs)
@@ -72,16 +79,38 @@ def test_an_earlier_output_is_replaced_as_a_unit_and_sidecars_do_not_clash(tmp_p
     src = _cloud_ply(tmp_path / "in.ply")
     out = tmp_path / "bone.ply"
     assert main(["reconstruct", str(src), "-o", str(out), *FAST]) == 0
-    first = json.loads(out.with_suffix(".json").read_text())
+    first = json.loads((tmp_path / "bone.ply.json").read_text())
     assert first["mesh"] == "bone.ply"
     assert main(["reconstruct", str(src), "-o", str(out), *FAST, "--seed", "7"]) == 0   # a rerun
-    assert json.loads(out.with_suffix(".json").read_text())["seed"] == 7
-    capsys.readouterr()
-    # bone.obj would share bone.json with bone.ply: refused before any work
-    assert main(["reconstruct", str(src), "-o", str(tmp_path / "bone.obj"), *FAST]) == 2
-    _one_error(capsys, "bone.json", "is the sidecar of bone.ply")
-    assert not (tmp_path / "bone.obj").exists()
-    assert json.loads(out.with_suffix(".json").read_text())["mesh"] == "bone.ply"
+    assert json.loads((tmp_path / "bone.ply.json").read_text())["seed"] == 7
+    # bone.obj beside bone.ply: each mesh has its own sidecar
+    assert main(["reconstruct", str(src), "-o", str(tmp_path / "bone.obj"), *FAST]) == 0
+    assert json.loads((tmp_path / "bone.obj.json").read_text())["mesh"] == "bone.obj"
+    assert json.loads((tmp_path / "bone.ply.json").read_text())["mesh"] == "bone.ply"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bone.obj", "bone.obj.json", "bone.ply",
+                                                          "bone.ply.json", "in.ply"]
+
+
+def test_an_output_with_an_earlier_versions_sidecar_is_recognised(tmp_path):
+    """Earlier versions named the sidecar NAME.json: such a pair is an earlier output, replaced as a
+    unit (the old sidecar removed once the new pair is in place); a NAME.json describing another
+    mesh is left alone."""
+    mesh = tmp_path / "bone.ply"
+    trimesh.creation.box().export(mesh)
+    old = tmp_path / "bone.json"
+    old.write_text(json.dumps({**SIDECAR, "mesh": "bone.ply"}))
+    assert check_outputs(mesh) == mesh
+    save_mesh_with_sidecar(trimesh.creation.icosahedron(), mesh, SIDECAR)
+    assert not old.exists() and json.loads(sidecar_path(mesh).read_text())["mesh"] == "bone.ply"
+    # bone.json of bone.ply does not make bone.obj an output of ours, nor is it removed for it
+    obj = tmp_path / "bone.obj"
+    trimesh.creation.box().export(obj)
+    old.write_text(json.dumps({**SIDECAR, "mesh": "bone.ply"}))
+    with pytest.raises(InputError, match="not an output of ultraboneudf"):
+        check_outputs(obj)
+    obj.unlink()
+    save_mesh_with_sidecar(trimesh.creation.icosahedron(), obj, SIDECAR)
+    assert json.loads(old.read_text())["mesh"] == "bone.ply"
 
 
 @pytest.mark.parametrize("failure", [OSError(28, "No space left on device"), KeyboardInterrupt()])
@@ -102,7 +131,7 @@ def test_a_failure_between_the_two_files_leaves_neither(tmp_path, monkeypatch, f
     expected = InputError if isinstance(failure, OSError) else KeyboardInterrupt
     with pytest.raises(expected):
         save_mesh_with_sidecar(trimesh.creation.icosahedron(), out, SIDECAR)
-    assert [str(c) for c in calls] == [str(out), str(out.with_suffix(".json"))]
+    assert [str(c) for c in calls] == [str(out), str(sidecar_path(out))]
     assert list(tmp_path.iterdir()) == []
 
 
@@ -131,17 +160,53 @@ io.save_mesh_with_sidecar(trimesh.creation.icosahedron(), {str(out)!r}, {SIDECAR
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0, reason="root writes into read-only folders")
-def test_a_read_only_folder_is_one_line_before_any_work(tmp_path, capsys):
+def _drop_root_file_privileges() -> None:
+    """In the child before it runs: without CAP_DAC_OVERRIDE and CAP_DAC_READ_SEARCH in its
+    bounding set, root meets file permissions as any user does (the suite runs as root in CI)."""
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    for capability in (1, 2):  # CAP_DAC_OVERRIDE, CAP_DAC_READ_SEARCH
+        if libc.prctl(24, capability, 0, 0, 0) != 0:  # PR_CAPBSET_DROP
+            os._exit(97)
+
+
+def _cli_without_privileges(*args: str) -> subprocess.CompletedProcess:
+    res = subprocess.run([sys.executable, "-m", "ultraboneudf.cli", *args], capture_output=True, text=True,
+                         preexec_fn=_drop_root_file_privileges if os.geteuid() == 0 else None)
+    if res.returncode == 97:
+        pytest.skip("cannot drop root's file privileges here (no CAP_SETPCAP)")
+    return res
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid"), reason="POSIX permissions")
+def test_a_read_only_folder_is_one_line_before_any_work(tmp_path):
     src = _cloud_ply(tmp_path / "in.ply")
     locked = tmp_path / "locked"
     locked.mkdir()
     locked.chmod(0o555)
     try:
-        assert main(["reconstruct", str(src), "-o", str(locked / "m.ply"), *FAST]) == 2
-        _one_error(capsys, "permission denied")
+        res = _cli_without_privileges("reconstruct", str(src), "-o", str(locked / "m.ply"), *FAST)
     finally:
         locked.chmod(0o755)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1, res.stderr
+    assert "cannot write into" in lines[0] and "permission denied" in lines[0]
+    assert list(locked.iterdir()) == []
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid"), reason="POSIX permissions")
+def test_an_unreadable_input_is_one_line_before_any_work(tmp_path):
+    src = _cloud_ply(tmp_path / "locked.ply")
+    src.chmod(0o000)
+    try:
+        res = _cli_without_privileges("reconstruct", str(src), "-o", str(tmp_path / "m.ply"), *FAST)
+    finally:
+        src.chmod(0o644)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1, res.stderr
+    assert "locked.ply" in lines[0] and "Permission denied" in lines[0] and "Traceback" not in res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["locked.ply"]
 
 
 @pytest.mark.parametrize("scale,unit,hint", [(0.001, "m", "--units m"), (1000.0, "um", "--units um")])
@@ -155,7 +220,7 @@ def test_a_cloud_in_the_wrong_unit_is_one_line_before_any_work(tmp_path, capsys,
     _one_error(capsys, src.name, hint)
     assert not (tmp_path / "m.ply").exists()
     assert main(["reconstruct", str(src), "-o", str(tmp_path / "m.ply"), "--units", unit, *FAST]) == 0
-    side = json.loads((tmp_path / "m.json").read_text())
+    side = json.loads((tmp_path / "m.ply.json").read_text())
     assert side["input"]["units"] == unit
     lo, hi = trimesh.load(tmp_path / "m.ply").bounds
     assert 20 < (hi - lo).max() < 60                 # the mesh is in mm

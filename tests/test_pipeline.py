@@ -90,7 +90,7 @@ def test_sidecar_contents(small_run, tmp_path):
     assert sidecar["config"]["train"]["iters"] == 400
     assert ultraboneudf.Config.from_dict(sidecar["config"]) == rec.config
     rec.save(tmp_path / "m.obj")
-    assert (tmp_path / "m.obj").exists() and (tmp_path / "m.json").exists()
+    assert (tmp_path / "m.obj").exists() and (tmp_path / "m.obj.json").exists()
 
 
 def test_fit_warnings_name_what_is_missing_or_unsupported(small_run):

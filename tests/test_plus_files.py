@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from ultraboneudf.cli import main
+from ultraboneudf.io import sidecar_path
 from ultraboneudf.errors import InputError
 from ultraboneudf.sweep import SweepWarning, read_sweep
 
@@ -157,7 +158,7 @@ def test_bone_and_spine_reconstruct_end_to_end(tmp_path, capsys, name, config):
     code = main(["reconstruct", str(PLUS / name), "--calibration", str(PLUS / config), "--preset", "fast",
                  "--iters", "300", "--set", "extract.max_depth=6", "-o", str(out), "--quiet"])
     assert code == 0, capsys.readouterr().err
-    side = json.loads(out.with_suffix(".json").read_text())
+    side = json.loads(sidecar_path(out).read_text())
     sweep = side["input"]["sweep"]
     assert side["counts"]["faces"] > 500
     assert sweep["pose_chain"]["chain"] == "ReferenceToTracker⁻¹ · ProbeToTracker · ImageToProbe"

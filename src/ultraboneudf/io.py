@@ -322,8 +322,28 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> None:
 
 
 def sidecar_path(mesh_path: str | os.PathLike) -> Path:
-    """The JSON sidecar of a mesh file: the same name with the suffix ``.json``."""
+    """The JSON sidecar of a mesh file: the mesh's whole name plus ``.json`` (``bone.ply`` →
+    ``bone.ply.json``), so that meshes of different formats never share one."""
+    path = Path(mesh_path)
+    return path.with_name(path.name + ".json")
+
+
+def legacy_sidecar_path(mesh_path: str | os.PathLike) -> Path:
+    """The name earlier versions gave a mesh's sidecar (``bone.ply`` → ``bone.json``); still read."""
     return Path(mesh_path).with_suffix(".json")
+
+
+def find_sidecar(mesh_path: str | os.PathLike) -> tuple[Path, dict[str, Any]] | None:
+    """The sidecar this package wrote for ``mesh_path`` and its contents: ``NAME.EXT.json``, else an
+    earlier version's ``NAME.json`` when it names this mesh; ``None`` if neither."""
+    mesh = Path(mesh_path)
+    side = sidecar_path(mesh)
+    meta = read_sidecar(side) if side.exists() else None
+    if meta is not None and meta.get("mesh", mesh.name) == mesh.name:
+        return side, meta
+    legacy = legacy_sidecar_path(mesh)  # shared by every format: ours only if it names this mesh
+    meta = read_sidecar(legacy) if legacy.exists() else None
+    return (legacy, meta) if meta is not None and meta.get("mesh") == mesh.name else None
 
 
 def read_sidecar(path: str | os.PathLike) -> dict[str, Any] | None:
@@ -343,8 +363,9 @@ FREE_SPACE_BYTES = 64 << 20
 def check_outputs(mesh_path: str | os.PathLike, inputs: tuple[str | os.PathLike, ...] = ()) -> Path:
     """Check, before any work, that writing ``mesh_path`` and its sidecar loses nothing: neither is
     an input nor inside an input folder; an existing mesh is replaced only with its own sidecar
-    (an earlier output of this package, replaced as a unit); an existing sidecar only if this
-    package wrote it for this mesh; the folder is writable and has room. Raises
+    (an earlier output of this package, under either sidecar name, replaced as a unit); an
+    existing sidecar only if this package wrote it for this mesh; the folder is writable and has
+    room. Raises
     :class:`InputError` naming the file; returns ``mesh_path`` as a :class:`Path`."""
     mesh = check_mesh_path(mesh_path)
     side = sidecar_path(mesh)
@@ -364,7 +385,7 @@ def check_outputs(mesh_path: str | os.PathLike, inputs: tuple[str | os.PathLike,
     if meta is not None and meta.get("mesh", mesh.name) != mesh.name:
         raise InputError(f"{side}: is the sidecar of {meta['mesh']}; choose another output name for "
                          f"{mesh.name}")
-    if mesh.exists() and meta is None:
+    if mesh.exists() and find_sidecar(mesh) is None:
         raise InputError(f"{mesh}: exists and is not an output of ultraboneudf (no sidecar {side.name}); "
                          f"choose another output name or remove it")
     folder = mesh.parent if mesh.parent.exists() else next(
@@ -379,10 +400,11 @@ def check_outputs(mesh_path: str | os.PathLike, inputs: tuple[str | os.PathLike,
 
 
 def save_mesh_with_sidecar(mesh: trimesh.Trimesh, path: str | os.PathLike, sidecar: dict[str, Any]) -> Path:
-    """Write the mesh (format by suffix) and its sidecar as a pair: both go to temporary files
-    first, then the mesh and last the sidecar are renamed into place; on any failure, a signal
-    (SIGTERM is turned into an exception while this runs) or Ctrl-C, both are removed, so a mesh
-    never stands without its sidecar. Returns the sidecar path."""
+    """Write the mesh (format by suffix) and its sidecar (:func:`sidecar_path`) as a pair: both go
+    to temporary files first, then the mesh and last the sidecar are renamed into place; on any
+    failure, a signal (SIGTERM is turned into an exception while this runs) or Ctrl-C, both are
+    removed, so a mesh never stands without its sidecar. An earlier version's sidecar of the mesh
+    replaced (``NAME.json``) is removed once the pair is in place. Returns the sidecar path."""
     path = check_mesh_path(path)
     side = sidecar_path(path)
     data = trimesh.exchange.export.export_mesh(mesh, file_obj=None, file_type=path.suffix[1:].lower())
@@ -407,6 +429,10 @@ def save_mesh_with_sidecar(mesh: trimesh.Trimesh, path: str | os.PathLike, sidec
             if isinstance(exc, OSError):
                 raise InputError(f"{path}: cannot write ({exc.strerror or exc}); nothing written") from None
             raise
+    legacy = legacy_sidecar_path(path)
+    meta = read_sidecar(legacy) if legacy.exists() else None
+    if meta is not None and meta.get("mesh") == path.name:
+        legacy.unlink(missing_ok=True)  # an earlier version's sidecar of the mesh just replaced
     return side
 
 

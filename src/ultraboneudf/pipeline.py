@@ -133,7 +133,7 @@ class Reconstruction:
         return out
 
     def save(self, path: str | Path) -> Path:
-        """Write the mesh (format by suffix) and its sidecar ``path.with_suffix('.json')`` as a pair
+        """Write the mesh (format by suffix) and its sidecar ``NAME.EXT.json`` as a pair
         (:func:`~ultraboneudf.io.save_mesh_with_sidecar`: both or neither). An existing file is
         replaced only if it is an earlier output of this package with its sidecar
         (:func:`~ultraboneudf.io.check_outputs`). Returns the sidecar path."""

@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
           f"{t['preprocess_s']:.1f} s, train {t['train_s']:.1f} s, extract {t['extract_s']:.1f} s)")
     for warning in rec.fit_warnings(cli=True):
         print(f"demo: warning: {warning}")
-    print(f"demo: wrote {out}/demo_mesh.ply, demo_mesh.json, demo_eval.json, {picture.name}")
+    print(f"demo: wrote {out}/demo_mesh.ply, demo_mesh.ply.json, demo_eval.json, {picture.name}")
     return 0
 
 
