@@ -20,7 +20,7 @@ B→A), HD95 = max of the two directed 95th percentiles (mm); ``area`` = mesh ar
     python benchmarks/bench_robust.py --levels hard --methods ultraboneudf,poisson,capudf
     python benchmarks/bench_robust.py --bones talus --levels clean,hard --preset fast
     python benchmarks/bench_robust.py --json bench_out/robust.jsonl --pictures bench_out/robust_png
-    python benchmarks/bench_robust.py --levels hard --methods ultraboneudf --align
+    python benchmarks/bench_robust.py --levels hard --methods ultraboneudf --no-align
 
 Rows are appended to ``--json`` as they finish (JSON lines); a rerun skips the rows already there
 (same bone, level, seed, method, preset, iterations and ``--set``), so a killed run resumes.
@@ -46,10 +46,10 @@ SWEEP_LEVELS = {"clean": "none", "moderate": "moderate", "hard": "hard"}
 LEVELS = "clean,moderate,hard,open,e6-0.5,e6-1.0,e6-1.5,e6-2.0"
 
 
-def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = False):
+def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True):
     """(points (N, 3) mm, probe positions (N, 3) mm or None, truth mesh) of one bone at one level,
     read from ``cache`` when an earlier run made it; ``align``: the sweep's frames registered to
-    their neighbours (``reconstruct --align-frames``)."""
+    their neighbours, as ``reconstruct SWEEP`` does (``--no-align-frames``: not)."""
     import trimesh
 
     from ultraboneudf import load_mesh
@@ -157,8 +157,8 @@ def main() -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--device", default="cpu")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulation and of every method")
-    p.add_argument("--align", action="store_true", help="register the sweeps' frames to their neighbours "
-                   "(reconstruct --align-frames)")
+    p.add_argument("--no-align", action="store_true", help="keep the sweeps' frames as tracked "
+                   "(reconstruct --no-align-frames)")
     p.add_argument("--samples", type=int, default=300_000, help="area samples per mesh for CD/HD95")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--cache", type=Path, default=Path("bench_out/robust_inputs"))
@@ -175,13 +175,13 @@ def main() -> None:
     rows = []
     for bone in args.bones.split(","):
         for level in args.levels.split(","):
-            points, probe, truth = make_input(bone, level, args.seed, args.cache, args.align)
+            points, probe, truth = make_input(bone, level, args.seed, args.cache, not args.no_align)
             meshes = {}
             for method in args.methods.split(","):
                 key = {"bone": bone, "level": level, "seed": args.seed, "method": method,
                        "preset": args.preset, "iters_override": args.iters, "set": args.set}
-                if args.align:
-                    key["align"] = True
+                if level in SWEEP_LEVELS:
+                    key["align"] = not args.no_align
                 old = next((r for r in done if all(r.get(k) == v for k, v in key.items())), None)
                 if old is not None:
                     rows.append(old)

@@ -171,12 +171,15 @@ def _drop_root_file_privileges() -> None:
             os._exit(97)
 
 
-def _cli_without_privileges(*args: str) -> subprocess.CompletedProcess:
+def _error_without_privileges(*args: str) -> str:
+    """The command line run as a user without root's file privileges: exit 2 and its one line."""
     res = subprocess.run([sys.executable, "-m", "ultraboneudf.cli", *args], capture_output=True, text=True,
                          preexec_fn=_drop_root_file_privileges if os.geteuid() == 0 else None)
     if res.returncode == 97:
         pytest.skip("cannot drop root's file privileges here (no CAP_SETPCAP)")
-    return res
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
+    return lines[0]
 
 
 @pytest.mark.skipif(not hasattr(os, "geteuid"), reason="POSIX permissions")
@@ -186,12 +189,10 @@ def test_a_read_only_folder_is_one_line_before_any_work(tmp_path):
     locked.mkdir()
     locked.chmod(0o555)
     try:
-        res = _cli_without_privileges("reconstruct", str(src), "-o", str(locked / "m.ply"), *FAST)
+        line = _error_without_privileges("reconstruct", str(src), "-o", str(locked / "m.ply"), *FAST)
     finally:
         locked.chmod(0o755)
-    lines = res.stderr.strip().splitlines()
-    assert res.returncode == 2 and len(lines) == 1, res.stderr
-    assert "cannot write into" in lines[0] and "permission denied" in lines[0]
+    assert "cannot write into" in line and "permission denied" in line
     assert list(locked.iterdir()) == []
 
 
@@ -200,12 +201,10 @@ def test_an_unreadable_input_is_one_line_before_any_work(tmp_path):
     src = _cloud_ply(tmp_path / "locked.ply")
     src.chmod(0o000)
     try:
-        res = _cli_without_privileges("reconstruct", str(src), "-o", str(tmp_path / "m.ply"), *FAST)
+        line = _error_without_privileges("reconstruct", str(src), "-o", str(tmp_path / "m.ply"), *FAST)
     finally:
         src.chmod(0o644)
-    lines = res.stderr.strip().splitlines()
-    assert res.returncode == 2 and len(lines) == 1, res.stderr
-    assert "locked.ply" in lines[0] and "Permission denied" in lines[0] and "Traceback" not in res.stderr
+    assert "locked.ply" in line and "Permission denied" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["locked.ply"]
 
 

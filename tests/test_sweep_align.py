@@ -128,22 +128,27 @@ def test_simulated_sweep_tracking_error_is_reduced():
     assert normal_error(out.points) < 0.85 * normal_error(cp.points)
 
 
-def test_cli_align_frames(tmp_path, capsys):
+def test_cli_aligns_frames_unless_told_not_to(tmp_path, capsys):
     capsule = trimesh.creation.capsule(height=40.0, radius=8.0, count=[32, 32])
     mesh = tmp_path / "capsule.ply"
     capsule.export(mesh)
     sweep = tmp_path / "sw"
     assert main(["simulate", str(mesh), "-o", str(sweep), "--frames", "24", "--width-px", "96",
                  "--height-px", "120", "--spacing-mm", "0.3", "--seed", "1", "--quiet"]) == 0
-    pts = tmp_path / "p.xyz"
-    assert main(["sweep2points", str(sweep), "-o", str(pts), "--segment", "masks",
-                 "--align-frames"]) == 0
+    aligned, tracked = tmp_path / "a.xyz", tmp_path / "t.xyz"
+    assert main(["sweep2points", str(sweep), "-o", str(aligned), "--segment", "masks"]) == 0
     assert "aligned to their neighbours" in capsys.readouterr().err
-    assert len(np.loadtxt(pts)) > 100
+    assert main(["sweep2points", str(sweep), "-o", str(tracked), "--segment", "masks",
+                 "--no-align-frames"]) == 0
+    assert "aligned" not in capsys.readouterr().err
+    a, t = np.loadtxt(aligned), np.loadtxt(tracked)
+    assert a.shape == t.shape and len(a) > 100
+    assert np.array_equal(a[:, 3], t[:, 3])                        # the same points, frame by frame
+    assert 0.0 < np.abs(a[:, :3] - t[:, :3]).max() < 2.0
     cloud = tmp_path / "cloud.xyz"
     np.savetxt(cloud, np.random.default_rng(0).normal(size=(50, 3)) * 20)
-    assert main(["reconstruct", str(cloud), "-o", str(tmp_path / "m.ply"), "--align-frames"]) == 2
-    assert "--align-frames applies to tracked sweeps" in capsys.readouterr().err
+    assert main(["reconstruct", str(cloud), "-o", str(tmp_path / "m.ply"), "--no-align-frames"]) == 2
+    assert "--no-align-frames applies to tracked sweeps" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("n", [0, 1])
@@ -153,3 +158,4 @@ def test_too_few_points_or_frames(n):
         cp = cp.subset(np.zeros(len(cp), dtype=bool))
     out, report = align_frames(cp)
     assert report.aligned == 0 and np.array_equal(out.points, cp.points)
+    assert report.as_dict()["residual_before_mm"] is None  # JSON has no NaN

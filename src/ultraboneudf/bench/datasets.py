@@ -4,7 +4,8 @@
   above the bone sees), sampled by area — the paper's OpenBoneCT, from the user's own meshes;
 - ``closedbone``: the whole meshes sampled (ClosedBoneCT);
 - ``simsweep``: a tracked sweep simulated over every bone at a named noise level, several seeds, its
-  compounded points with their probe positions, against the surface the probe saw;
+  compounded points with their probe positions (frames registered to each other, as
+  ``reconstruct SWEEP`` does), against the surface the probe saw;
 - ``pairs``: a user's folder of ``NAME.<cloud>`` + ``NAME_gt.<mesh>`` pairs.
 """
 
@@ -66,11 +67,11 @@ def make_dataset(kind: str, source: str | os.PathLike, out: str | os.PathLike, *
                     truth = mesh
                     points = sample_surface(truth, samples, seed=seed)
                 else:
-                    from ..sweep import sweep_to_points
+                    from ..sweep import align_frames, sweep_to_points
                     from ..synth.simulator import config_with_noise, simulate_sweep
 
                     sim = simulate_sweep(mesh, config_with_noise(level, seed=seed))
-                    cp = sweep_to_points(sim.sweep, segment="masks")
+                    cp, _ = align_frames(sweep_to_points(sim.sweep, segment="masks"))
                     points, probe, truth = cp.points, cp.probe_position, sim.visible_mesh
                 _save_points(out / f"{name}.npz", points, probe)
                 save_mesh(truth, out / f"{name}_gt.ply")

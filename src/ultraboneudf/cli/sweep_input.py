@@ -50,10 +50,10 @@ def add_sweep_options(p: argparse.ArgumentParser) -> None:
                    help="classical detector: keep echoes that no neighbouring frame confirms")
     g.add_argument("--threshold", type=float, default=0.5,
                    help="learned model: probability threshold (default 0.5)")
-    g.add_argument("--align-frames", action="store_true",
-                   help="register each frame rigidly to its neighbouring frames before "
-                        "reconstruction (removes per-frame tracking error from densely sampled "
-                        "sweeps; frames more than a few mm apart are left as tracked)")
+    g.add_argument("--no-align-frames", action="store_true",
+                   help="keep every frame where the tracker put it (by default each frame is "
+                        "registered rigidly to its neighbouring frames, removing per-frame tracking "
+                        "error; frames more than a few mm apart are left as tracked anyway)")
 
 
 def parse_kv(items: list[str], option: str = "--detector") -> dict[str, float]:
@@ -78,8 +78,8 @@ def sweep_options_given(args: argparse.Namespace) -> list[str]:
         given.append("segment")
     if getattr(args, "detector", None):
         given.append("detector")
-    if getattr(args, "align_frames", False):
-        given.append("align_frames")
+    if getattr(args, "no_align_frames", False):
+        given.append("no_align_frames")
     return ["--" + g.replace("_", "-") for g in given]
 
 
@@ -191,7 +191,7 @@ def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, to
                          outlier_std=outlier_std, progress=progress)
     if frame_step > 1:
         cp.frame_index = cp.frame_index * frame_step
-    if args.align_frames:
+    if not args.no_align_frames:
         cp, report = align_frames(cp)
         info["alignment"] = report.as_dict()
         progress.log(f"{path.name}: {report.summary()}")

@@ -63,7 +63,9 @@ class AlignmentReport:
     max_angle_deg: float
 
     def as_dict(self) -> dict:
-        return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
+        """The fields for JSON (lengths rounded to 0.1 µm; an undefined spread is ``None``)."""
+        return {k: ((round(v, 4) if np.isfinite(v) else None) if isinstance(v, float) else v)
+                for k, v in self.__dict__.items()}
 
     def summary(self) -> str:
         """One line for the log."""
