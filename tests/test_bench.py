@@ -1,5 +1,6 @@
 """Datasets as manifests, the resumable experiment runner and its tables."""
 
+import base64
 import json
 import os
 from pathlib import Path
@@ -11,7 +12,7 @@ import trimesh
 
 from ultraboneudf.bench.datasets import make_dataset
 from ultraboneudf.bench.manifest import read_manifest
-from ultraboneudf.bench.report import report
+from ultraboneudf.bench.report import html_report, report, swept_axis
 from ultraboneudf.bench.runner import EXPERIMENTS, finished_rows, plan, run_cells
 from ultraboneudf.cli import main
 from ultraboneudf.errors import InputError
@@ -92,6 +93,19 @@ def test_a_killed_run_resumes_without_recomputing_finished_cells(dataset, tmp_pa
     table = report(out)
     assert "ultraboneudf [loss.lambda_gs=0]" in table and "**" in table and "train.iters" not in table
     assert "Parameters and runtime" in table and "| 1282 |" in table   # (32, 32) with weight norm: 1,282
+    # the HTML page: the same tables, CD against the swept setting, a picture per unit
+    axis, series = swept_axis(rows)
+    assert axis == "loss.lambda_gs" and list(series) == ["ultraboneudf"]
+    rows = finished_rows(out)
+    means = {x: np.mean([r["cd_mm"] for r in rows if f"loss.lambda_gs={x:g}" in r["overrides"].split()])
+             for x in (0, 0.01)}
+    assert series["ultraboneudf"] == [pytest.approx((0.0, means[0])), pytest.approx((0.01, means[0.01]))]
+    page = html_report(out)
+    assert page.startswith("<!DOCTYPE html>") and page.count("<table>") == 3 and "<b>" in page
+    assert "<svg" in page and page.count("<polyline") == 1
+    assert page.count('src="data:image/png;base64,') == 2                 # ball and capsule
+    png = base64.b64decode(page.split('src="data:image/png;base64,')[1].split('"')[0])
+    assert png.startswith(b"\x89PNG")
 
 
 def test_cli_bench_dataset_run_report(tmp_path, capsys):
@@ -107,8 +121,10 @@ def test_cli_bench_dataset_run_report(tmp_path, capsys):
     assert main(args) == 0
     assert main(args) == 0
     assert "0 cells done, 0 failed, 1 finished before" in capsys.readouterr().out
-    assert main(["bench", "report", str(tmp_path / "r"), "--format", "csv"]) == 0
+    page = tmp_path / "report.html"
+    assert main(["bench", "report", str(tmp_path / "r"), "--format", "csv", "--html", str(page)]) == 0
     assert "ball" in capsys.readouterr().out
+    assert "<table>" in page.read_text() and "data:image/png;base64," in page.read_text()
     assert main([*args[:-2], "--set", "loss.kind=bogus"]) == 2              # checked before any cell
 
 

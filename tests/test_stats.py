@@ -146,5 +146,8 @@ def test_tables_mark_the_best_value_per_column():
     assert csv_text.splitlines()[0] == "method,#1,#2,mean,failed"
     tex = format_table(t, "latex")
     assert "\\textbf{1.10}" in tex and "\\toprule" in tex and "\\#1" in tex
+    page = format_table(t, "html")
+    assert "<tr><th>ultraboneudf</th><td><b>1.10</b></td><td><b>2.10</b></td><td><b>1.60</b></td><td>0</td></tr>" in page
+    assert "<tr><th>poisson</th><td>3.10</td>" in page and page.count("<tr>") == 4
     with pytest.raises(ValueError):
-        format_table(t, "html")
+        format_table(t, "xlsx")

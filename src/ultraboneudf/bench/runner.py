@@ -44,7 +44,7 @@ EXPERIMENTS: dict[str, dict[str, Any]] = {
 COLUMNS = ("cell", "unit", "specimen", "method", "preset", "seed", "overrides", "status", "reason",
            "cd_mm", "hd95_mm", "d_rg_mean_mm", "d_gr_mean_mm", "area_ratio", "nonmanifold_edges",
            "input_far_fraction", "mesh_far_area_fraction", "preprocess_s", "train_s", "extract_s",
-           "total_s", "parameters", "faces", "version", "config_hash")
+           "total_s", "parameters", "faces", "version", "config_hash", "gt")
 
 
 @dataclass(frozen=True)
@@ -148,7 +148,8 @@ def _run_cell(cell: Cell, folder: Path, device: str, samples: int) -> dict[str, 
     folder.mkdir(parents=True)
     row: dict[str, Any] = {"cell": cell.id, "unit": cell.unit.id, "specimen": cell.unit.specimen,
                            "method": cell.method, "preset": cell.preset, "seed": cell.seed,
-                           "overrides": " ".join(cell.overrides), "version": __version__}
+                           "overrides": " ".join(cell.overrides), "version": __version__,
+                           "gt": str(cell.unit.gt)}
     try:
         points, probe = _read_input(cell.unit.input)
         with warnings.catch_warnings():
@@ -181,7 +182,8 @@ def _run_cell(cell: Cell, folder: Path, device: str, samples: int) -> dict[str, 
 
 
 def _read_input(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points (mm) and, from an ``.npz`` that has them, the probe positions."""
+    """Points (mm) and, from an ``.npz`` that has them or a sweep, the probe positions (a sweep's
+    frames registered to each other, as ``reconstruct SWEEP`` does)."""
     from ..io import load_points
 
     if path.suffix.lower() == ".npz":
@@ -189,9 +191,9 @@ def _read_input(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
             if "probe" in data.files and "points" in data.files:
                 return load_points(path), np.asarray(data["probe"], dtype=np.float64)
     if path.is_dir() or path.suffix.lower() in (".mha", ".mhd", ".nrrd"):
-        from ..sweep import sweep_to_points
+        from ..sweep import align_frames, sweep_to_points
 
-        cp = sweep_to_points(path)
+        cp, _ = align_frames(sweep_to_points(path))
         return cp.points, cp.probe_position
     return load_points(path), None
 

@@ -46,8 +46,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     t = bench.add_parser("report", help="the CD and HD95 tables (and Wilcoxon tests) of a run folder")
     t.add_argument("folder", type=Path)
-    t.add_argument("--format", default="md", choices=["md", "csv", "latex"])
+    t.add_argument("--format", default="md", choices=["md", "csv", "latex", "html"])
     t.add_argument("--baseline", default=None, help="a row label to test against every other (Wilcoxon)")
+    t.add_argument("--html", type=Path, default=None, metavar="FILE",
+                   help="also write the whole report as one HTML page that opens offline: the tables, "
+                        "the CD against a swept setting (e.g. E4's network depth) and each unit's "
+                        "meshes coloured by their distance to the truth")
     t.set_defaults(func=run_report)
 
 
@@ -81,7 +85,11 @@ def run_run(args: argparse.Namespace) -> int:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from ..bench.report import report
+    from ..bench.report import html_report, report
+    from ..io import atomic_write_bytes
 
     sys.stdout.write(report(args.folder, args.format, args.baseline))
+    if args.html is not None:
+        atomic_write_bytes(args.html, html_report(args.folder, args.baseline).encode("utf-8"))
+        print(f"bench report: wrote {args.html}", file=sys.stderr)
     return 0

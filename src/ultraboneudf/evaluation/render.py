@@ -344,7 +344,7 @@ def _colour_bar(height: int, vmax: float, mean_text: Optional[str], scale: float
     return panel
 
 
-def _to_png_bytes(image) -> bytes:
+def png_bytes(image) -> bytes:
     import io as _io
 
     buf = _io.BytesIO()
@@ -408,7 +408,7 @@ def render_distance_image(mesh: MeshLike, reference: Optional[np.ndarray] = None
 def render_distance_png(path: str | os.PathLike, mesh: MeshLike, reference: Optional[np.ndarray] = None,
                         **kwargs: Any) -> None:
     """Write :func:`render_distance_image` to ``path`` (PNG, atomically)."""
-    atomic_write_bytes(path, _to_png_bytes(render_distance_image(mesh, reference, **kwargs)))
+    atomic_write_bytes(path, png_bytes(render_distance_image(mesh, reference, **kwargs)))
 
 
 def render_grid_image(meshes: Mapping[str, Optional[MeshLike]], reference: Optional[np.ndarray],
@@ -461,4 +461,4 @@ def render_grid_image(meshes: Mapping[str, Optional[MeshLike]], reference: Optio
 def render_grid_png(path: str | os.PathLike, meshes: Mapping[str, Optional[MeshLike]],
                     reference: Optional[np.ndarray], **kwargs: Any) -> None:
     """Write :func:`render_grid_image` to ``path`` (PNG, atomically)."""
-    atomic_write_bytes(path, _to_png_bytes(render_grid_image(meshes, reference, **kwargs)))
+    atomic_write_bytes(path, png_bytes(render_grid_image(meshes, reference, **kwargs)))

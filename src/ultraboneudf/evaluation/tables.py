@@ -3,13 +3,14 @@
 A cell is the mean over that specimen's successful reconstructions (mm); "mean" is the mean of the
 specimen means (docs/ALGORITHMS.md §6.1). Lower is better for every metric here, so the bold cell of a
 column is its minimum, compared at the printed precision (visible ties are all bold). A ``failed``
-column is added when any reconstruction failed. Output: Markdown, CSV (plain numbers, no bold) and
-LaTeX (booktabs).
+column is added when any reconstruction failed. Output: Markdown, CSV (plain numbers, no bold),
+LaTeX (booktabs) and HTML (a ``<table>`` for a report page).
 """
 
 from __future__ import annotations
 
 import csv
+import html
 import io
 import math
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ from .stats import (
     specimens_in,
 )
 
-FORMATS = ("md", "csv", "latex")
+FORMATS = ("md", "csv", "latex", "html")
 METRIC_LABELS = {"cd_mm": "CD (mm)", "hd95_mm": "HD95 (mm)"}
 
 
@@ -115,6 +116,19 @@ def to_markdown(table: Table, first_header: str = "method") -> str:
     return "\n".join(lines) + "\n"
 
 
+def to_html(table: Table, first_header: str = "method") -> str:
+    """An HTML ``<table>`` with its title as caption, best cells in ``<b>``."""
+    esc = html.escape
+    head = "".join(f"<th>{esc(c)}</th>" for c in [first_header] + table.columns)
+    body = []
+    for i, (label, cells) in enumerate(table.rows):
+        texts = [f"<b>{esc(_text(table, i, j))}</b>" if table.bold[i][j] else esc(_text(table, i, j))
+                 for j in range(len(cells))]
+        body.append(f"<tr><th>{esc(label)}</th>" + "".join(f"<td>{t}</td>" for t in texts) + "</tr>")
+    return (f"<table>\n<caption>{esc(table.title)}</caption>\n<tr>{head}</tr>\n" + "\n".join(body)
+            + "\n</table>\n")
+
+
 def to_csv(table: Table, first_header: str = "method") -> str:
     """Plain CSV with full-precision numbers (empty cell = no value)."""
     buf = io.StringIO()
@@ -160,11 +174,13 @@ def _text(table: Table, i: int, j: int) -> str:
 
 
 def format_table(table: Table, fmt: str = "md", first_header: str = "method") -> str:
-    """Render ``table`` as ``md``, ``csv`` or ``latex``."""
+    """Render ``table`` as ``md``, ``csv``, ``latex`` or ``html``."""
     if fmt == "md":
         return to_markdown(table, first_header)
     if fmt == "csv":
         return to_csv(table, first_header)
     if fmt == "latex":
         return to_latex(table, first_header)
+    if fmt == "html":
+        return to_html(table, first_header)
     raise ValueError(f"unknown table format {fmt!r}; use one of {', '.join(FORMATS)}")
