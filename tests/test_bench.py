@@ -3,6 +3,7 @@
 import base64
 import json
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -176,3 +177,46 @@ def test_the_gpu_check_runs_on_the_cpu_in_quick_mode(tmp_path):
     results = (tmp_path / "e1" / "results.csv").read_text().splitlines()
     assert len(results) == 1 + 5                                     # one cell per method of Table 1
     assert "**CD (mm)**" in (tmp_path / "report.md").read_text()
+
+
+def test_the_ray_engine_gives_the_same_table_and_retries_a_killed_worker(dataset, tmp_path):
+    """A local two-CPU Ray cluster on loopback: the worker running the first cell is killed
+    (SIGKILL) once its folder appears; Ray starts the cell again and the table equals the local
+    engine's."""
+    ray = pytest.importorskip("ray")
+    import subprocess
+    import threading
+
+    units = read_manifest(dataset)
+    cells = plan(units, None, ["ultraboneudf"], [], QUICK, "fast", 0)
+    local, remote = tmp_path / "local", tmp_path / "ray"
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # a Ray task of one CPU runs torch on one thread
+    try:
+        run_cells(cells, local, device="cpu", samples=5000)
+    finally:
+        torch.set_num_threads(threads)
+    killed = []
+
+    def kill_the_first_worker():
+        deadline = time.time() + 120
+        while time.time() < deadline and not killed:
+            if (remote / "cells").exists() and any((remote / "cells").iterdir()):
+                time.sleep(0.5)  # inside the cell's work
+                killed.append(subprocess.run(["pkill", "-9", "-f", "ray::_run_cell"]).returncode == 0)
+            time.sleep(0.05)
+
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
+             _node_ip_address="127.0.0.1")
+    try:
+        watcher = threading.Thread(target=kill_the_first_worker)
+        watcher.start()
+        counts = run_cells(cells, remote, device="cpu", samples=5000, engine="ray")
+        watcher.join()
+    finally:
+        ray.shutdown()
+    assert killed == [True]                                   # a worker died in the middle of a cell
+    assert counts == {"done": 2, "skipped": 0, "failed": 0}   # and its cell was run again
+    strip = lambda rows: [{k: v for k, v in r.items() if not k.endswith("_s")} for r in rows]  # noqa: E731
+    assert strip(finished_rows(remote)) == strip(finished_rows(local))
+    assert (remote / "results.csv").read_text().count("\n") == 3

@@ -89,14 +89,24 @@ def plan(units: list[Unit], experiment: str | None, methods: list[str], sweeps: 
     return [Cell(u, m, preset, seed, tuple(fixed) + combo) for u in units for m in methods for combo in combos]
 
 
+ENGINES = ("local", "ray")
+
+
 def run_cells(cells: list[Cell], out: Path, *, device: str = "auto", samples: int = 300_000,
-              retry_failed: bool = False, workers: int = 1, progress: Progress = QUIET) -> dict[str, int]:
+              retry_failed: bool = False, workers: int = 1, progress: Progress = QUIET,
+              engine: str = "local", address: str | None = None) -> dict[str, int]:
     """Run every unfinished cell into ``out/cells/<id>/``; returns the counts ``done`` (this run),
     ``skipped`` (finished before), ``failed`` (this run). Configurations are checked for every cell
     before the first one runs (a bad ``--set`` stops the run at once). ``workers > 1`` runs that
-    many cells at once in a pool of processes on this machine, the CPU threads shared among them."""
+    many cells at once in a pool of processes on this machine, the CPU threads shared among them.
+    ``engine="ray"`` sends the cells to a Ray cluster instead (``address``; a local one when
+    ``None``), one CPU each, or one GPU each when ``device`` is CUDA; a cell whose worker dies is
+    retried (it starts again from an empty folder). The folders and tables are the same; ``out``
+    must then be on storage that every node of the cluster sees."""
     from ..pipeline import configure
 
+    if engine not in ENGINES:
+        raise InputError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
     for cell in cells:
         configure(cell.preset, cell.method, None, None, list(cell.overrides))
     out.mkdir(parents=True, exist_ok=True)
@@ -115,7 +125,9 @@ def run_cells(cells: list[Cell], out: Path, *, device: str = "auto", samples: in
             write_tables(out)
             advance()
 
-        if workers <= 1:
+        if engine == "ray":
+            _run_on_ray(todo, out, device, samples, address, finished)
+        elif workers <= 1:
             for cell in todo:
                 finished(_run_cell(cell, out / "cells" / cell.id, device, samples))
         else:
@@ -131,6 +143,36 @@ def run_cells(cells: list[Cell], out: Path, *, device: str = "auto", samples: in
                     finished(future.result())
     write_tables(out)
     return counts
+
+
+RAY_RETRIES = 3
+"""Times a cell is started again when its Ray worker dies (killed, out of memory, a lost node)."""
+
+
+def _run_on_ray(cells: list[Cell], out: Path, device: str, samples: int, address: str | None,
+                finished: Any) -> None:
+    """The cells as Ray tasks; ``finished(row)`` as each returns, in the order they finish."""
+    try:
+        import ray
+    except ImportError:
+        raise InputError("the Ray engine needs Ray: pip install 'ultraboneudf[ray]'") from None
+    started = not ray.is_initialized()
+    if started:
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        except (ConnectionError, ValueError, RuntimeError) as exc:
+            raise InputError(f"cannot reach the Ray cluster at {address or 'a new local instance'}: "
+                             f"{exc}") from None
+    try:
+        gpu = str(device).startswith("cuda")
+        task = ray.remote(num_cpus=1, num_gpus=1 if gpu else 0, max_retries=RAY_RETRIES)(_run_cell)
+        pending = [task.remote(c, out / "cells" / c.id, device, samples) for c in cells]
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            finished(ray.get(ready[0]))
+    finally:
+        if started:
+            ray.shutdown()
 
 
 def _worker_init(threads: int) -> None:

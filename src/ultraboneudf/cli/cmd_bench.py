@@ -41,6 +41,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--samples", type=int, default=300_000, help="area samples per surface for CD/HD95")
     r.add_argument("--retry-failed", action="store_true", help="run the failed cells again")
     r.add_argument("--workers", type=int, default=1, help="cells run at once in a process pool (default 1)")
+    r.add_argument("--engine", default="local", choices=["local", "ray"],
+                   help="local (this machine) or ray (a Ray cluster: one CPU, or one GPU with --device "
+                        "cuda, per cell; a cell whose worker dies is retried; needs "
+                        "pip install 'ultraboneudf[ray]')")
+    r.add_argument("--address", default=None,
+                   help="--engine ray: the cluster's address, e.g. 10.0.0.5:6379 or auto (default: a "
+                        "new local Ray instance); --out must be on storage every node sees")
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=run_run)
 
@@ -78,7 +85,8 @@ def run_run(args: argparse.Namespace) -> int:
     cells = plan(read_manifest(args.dataset), args.experiment, args.methods, args.sweeps, args.sets,
                  args.preset, args.seed)
     counts = run_cells(cells, args.out, device=args.device, samples=args.samples,
-                       retry_failed=args.retry_failed, workers=args.workers, progress=Progress(quiet=args.quiet))
+                       retry_failed=args.retry_failed, workers=args.workers, progress=Progress(quiet=args.quiet),
+                       engine=args.engine, address=args.address)
     print(f"bench: {counts['done']} cells done, {counts['failed']} failed, {counts['skipped']} finished "
           f"before; results in {args.out / 'results.csv'} and {args.out / 'results.sqlite'}")
     return 0
