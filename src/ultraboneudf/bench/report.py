@@ -47,7 +47,8 @@ def records(out: Path) -> list[Record]:
 def report(out: Path, fmt: str = "md", baseline: str | None = None, decimals: int = 2) -> str:
     """The CD and HD95 tables (and, with ``baseline``, its Wilcoxon tests against every other
     method, Bonferroni over their number) in ``fmt`` (``md``, ``csv``, ``latex``, ``html``)."""
-    return "\n\n".join(format_table(t, fmt, first_header=h) for t, h in _tables(out, baseline, decimals)) + "\n"
+    tables = _tables(out, baseline, decimals)
+    return "\n\n".join(format_table(t, fmt, first_header=h) for t, h in tables) + "\n"
 
 
 def _tables(out: Path, baseline: str | None, decimals: int) -> list[tuple[Table, str]]:

@@ -1,12 +1,12 @@
 """The experiment runner: cells (unit × method × overrides), one folder each, resumable.
 
-A cell's folder holds ``mesh.ply`` with its sidecar ``mesh.ply.json`` and, written last and atomically,
-``result.json`` (the metrics, the timings, the counts, the parameters). A cell is finished exactly
-when its ``result.json`` exists: a run killed at any moment leaves at most one unfinished folder,
-which the next run clears and recomputes. A failed reconstruction is a finished cell too (its
-``result.json`` says why); ``retry_failed`` runs those again. ``results.csv`` and ``results.sqlite``
-are rebuilt from the ``result.json`` files after every cell, so they always list exactly the
-finished cells.
+A cell's folder holds ``mesh.ply`` with its sidecar ``mesh.ply.json`` and, written last and
+atomically, ``result.json`` (the metrics, the timings, the counts, the parameters). A cell is
+finished exactly when its ``result.json`` exists: a run killed at any moment leaves at most one
+unfinished folder, which the next run clears and recomputes. A failed reconstruction is a finished
+cell too (its ``result.json`` says why); ``retry_failed`` runs those again. ``results.csv`` and
+``results.sqlite`` are rebuilt from the ``result.json`` files after every cell, so they always list
+exactly the finished cells.
 """
 
 from __future__ import annotations

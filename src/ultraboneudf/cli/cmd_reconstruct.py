@@ -49,9 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "reconstruct", help="reconstruct a bone surface mesh from a point cloud or a tracked sweep",
         description="Reconstruct a mesh (mm, input frame) from a point cloud file (.xyz .txt .csv .ply "
                     ".npy .npz, mm) or a tracked sweep (folder, PLUS .mha/.mhd/.igs.nrrd with its "
-                    "--calibration, Slicer .seq.nrrd). Writes OUT and a JSON sidecar OUT.json (bone.ply → bone.ply.json) with the "
-                    "resolved configuration, timings, counts and, for a sweep, its pose chain, spacing "
-                    "and segmentation.")
+                    "--calibration, Slicer .seq.nrrd). Writes OUT and a JSON sidecar OUT.json "
+                    "(bone.ply → bone.ply.json) with the resolved configuration, timings, counts and, "
+                    "for a sweep, its pose chain, spacing, segmentation and frame registration.")
     p.add_argument("input", type=Path, help="point cloud file or tracked sweep")
     p.add_argument("-o", "--output", type=Path, required=True, help="output mesh (.ply, .obj or .stl)")
     p.add_argument("--units", default="mm", choices=list(UNITS_MM),
