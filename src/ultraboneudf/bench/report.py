@@ -178,8 +178,8 @@ def html_report(out: Path, baseline: str | None = None, decimals: int = 2, pictu
             parts.append(f"<h2>{esc(unit)}: distance to the truth</h2>\n"
                          f'<img alt="{esc(unit)}" src="data:image/png;base64,{data}">')
     style = ("body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;margin:1em 0}"
-             "td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}caption{font-weight:bold;"
-             "text-align:left}img{max-width:100%}")
+             "td,th{border:1px solid #ccc;padding:3px 8px}td{text-align:right}th{text-align:left}"
+             "caption{font-weight:bold;text-align:left}img{max-width:100%}")
     return ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>ultraboneudf bench report</title>"
             f"<style>{style}</style></head><body>\n" + "\n".join(parts) + "\n</body></html>\n")
 
