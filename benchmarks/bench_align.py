@@ -33,18 +33,11 @@ def normal_errors(bone: str, level: str, seed: int) -> dict:
 
     from ultraboneudf import load_mesh
     from ultraboneudf.sweep import align_frames, sweep_to_points
-    from ultraboneudf.sweep.transforms import pixels_to_world
     from ultraboneudf.synth.simulator import config_with_noise, simulate_sweep
 
     sim = simulate_sweep(load_mesh(BONES / f"{bone}.ply"), config_with_noise(level, seed=seed))
     cp = sweep_to_points(sim.sweep, segment="masks")
-    sweep = sim.sweep
-    pixel_to_image = np.linalg.inv(sweep.image_to_world[0]) @ sweep.pixel_to_world()[0]
-    true = np.zeros_like(cp.points)
-    for f in np.unique(cp.frame_index):
-        rows = cp.frame_index == f
-        true[rows] = pixels_to_world(sim.true_image_to_world[f] @ pixel_to_image, cp.pixel[rows, 0],
-                                     cp.pixel[rows, 1])
+    true = sim.true_positions(cp.frame_index, cp.pixel)
     samples, faces = trimesh.sample.sample_surface(sim.visible_mesh, 2_000_000, seed=0)
     _, nearest = cKDTree(samples).query(true, workers=-1)
     normal = sim.visible_mesh.face_normals[faces[nearest]]

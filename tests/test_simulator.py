@@ -73,6 +73,16 @@ def test_tracking_noise_is_small_and_present(sim):
     assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 1.0
 
 
+def test_true_positions_undo_the_tracking_error(sim, capsule):
+    cp = compound(sim.sweep, top_only=True)
+    true = sim.true_positions(cp.frame_index, cp.pixel)
+    shift = np.linalg.norm(cp.points - true, axis=1)
+    assert 0 < np.median(shift) < 1.5                     # the recorded poses are off
+    exact = simulate_sweep(capsule, small("none", n_frames=8))
+    cp = compound(exact.sweep, top_only=True)
+    np.testing.assert_allclose(exact.true_positions(cp.frame_index, cp.pixel), cp.points, atol=1e-9)
+
+
 def test_bmode_has_bright_echo_and_shadow(sim):
     k = sim.sweep.n_frames // 2
     img = sim.sweep.images[k].astype(float)

@@ -100,20 +100,13 @@ def test_simulated_sweep_tracking_error_is_reduced():
     """The simulator's sweep of a capsule with its hard level's tracking error (0.3 mm / 0.3° per
     frame): the frames' error along the surface normal shrinks."""
     from ultraboneudf.sweep import sweep_to_points
-    from ultraboneudf.sweep.transforms import pixels_to_world
 
     capsule = trimesh.creation.capsule(height=60.0, radius=10.0, count=[48, 48])
     cfg = config_with_noise("hard", width_px=128, height_px=160, spacing_mm=0.3, missing_runs=0,
                             pred_fp_fraction=0.0, seed=5)
     sim = simulate_sweep(capsule, cfg)
     cp = sweep_to_points(sim.sweep, segment="masks")
-    sw = sim.sweep
-    pixel_to_image = np.linalg.inv(sw.image_to_world[0]) @ sw.pixel_to_world()[0]
-    true = np.zeros_like(cp.points)
-    for f in np.unique(cp.frame_index):
-        rows = cp.frame_index == f
-        true[rows] = pixels_to_world(sim.true_image_to_world[f] @ pixel_to_image, cp.pixel[rows, 0],
-                                     cp.pixel[rows, 1])
+    true = sim.true_positions(cp.frame_index, cp.pixel)
     out, report = align_frames(cp)
 
     # the capsule's normal at each true point: away from the nearest point of its axis segment

@@ -58,7 +58,7 @@ from ..io import atomic_write_bytes, save_json
 from ..progress import QUIET, Progress
 from ..sweep.model import Sweep
 from ..sweep.readers import ultrabones
-from ..sweep.transforms import rigid_from_euler
+from ..sweep.transforms import pixels_to_world, rigid_from_euler
 from .slicing import MeshArrays, first_hits, slice_plane
 from .sweep_config import NOISE_PRESETS, SimulationConfig, config_with_noise
 
@@ -99,6 +99,17 @@ class SimulatedSweep:
     def true_sweep(self) -> Sweep:
         """The same frames with the exact poses and the true masks."""
         return self.sweep.replace(image_to_world=self.true_image_to_world, masks=self.true_masks)
+
+    def true_positions(self, frame_index: np.ndarray, pixel: np.ndarray) -> np.ndarray:
+        """``(N, 3)`` mm: where the pixels ``pixel`` ``(N, 2)`` (column, row) of the frames
+        ``frame_index`` ``(N,)`` lie under the exact poses; compounded with the recorded poses
+        they are off by the tracking error."""
+        p2w = self.true_sweep().pixel_to_world()
+        out = np.empty((len(pixel), 3))
+        for f in np.unique(frame_index):
+            rows = frame_index == f
+            out[rows] = pixels_to_world(p2w[f], pixel[rows, 0], pixel[rows, 1])
+        return out
 
     def write(self, folder: str | os.PathLike) -> Path:
         """Write the sweep folder (see :func:`write_simulation`)."""
