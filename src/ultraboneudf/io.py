@@ -328,22 +328,13 @@ def sidecar_path(mesh_path: str | os.PathLike) -> Path:
     return path.with_name(path.name + ".json")
 
 
-def legacy_sidecar_path(mesh_path: str | os.PathLike) -> Path:
-    """The name earlier versions gave a mesh's sidecar (``bone.ply`` → ``bone.json``); still read."""
-    return Path(mesh_path).with_suffix(".json")
-
-
-def find_sidecar(mesh_path: str | os.PathLike) -> tuple[Path, dict[str, Any]] | None:
-    """The sidecar this package wrote for ``mesh_path`` and its contents: ``NAME.EXT.json``, else an
-    earlier version's ``NAME.json`` when it names this mesh; ``None`` if neither."""
+def legacy_sidecar(mesh_path: str | os.PathLike) -> Path | None:
+    """An earlier version's sidecar of ``mesh_path`` (``bone.ply`` → ``bone.json``, a name every
+    format shared): its path if this package wrote it and it names this mesh, else ``None``."""
     mesh = Path(mesh_path)
-    side = sidecar_path(mesh)
-    meta = read_sidecar(side) if side.exists() else None
-    if meta is not None and meta.get("mesh", mesh.name) == mesh.name:
-        return side, meta
-    legacy = legacy_sidecar_path(mesh)  # shared by every format: ours only if it names this mesh
+    legacy = mesh.with_suffix(".json")
     meta = read_sidecar(legacy) if legacy.exists() else None
-    return (legacy, meta) if meta is not None and meta.get("mesh") == mesh.name else None
+    return legacy if meta is not None and meta.get("mesh") == mesh.name else None
 
 
 def read_sidecar(path: str | os.PathLike) -> dict[str, Any] | None:
@@ -385,7 +376,7 @@ def check_outputs(mesh_path: str | os.PathLike, inputs: tuple[str | os.PathLike,
     if meta is not None and meta.get("mesh", mesh.name) != mesh.name:
         raise InputError(f"{side}: is the sidecar of {meta['mesh']}; choose another output name for "
                          f"{mesh.name}")
-    if mesh.exists() and find_sidecar(mesh) is None:
+    if mesh.exists() and meta is None and legacy_sidecar(mesh) is None:
         raise InputError(f"{mesh}: exists and is not an output of ultraboneudf (no sidecar {side.name}); "
                          f"choose another output name or remove it")
     folder = mesh.parent if mesh.parent.exists() else next(
@@ -429,10 +420,9 @@ def save_mesh_with_sidecar(mesh: trimesh.Trimesh, path: str | os.PathLike, sidec
             if isinstance(exc, OSError):
                 raise InputError(f"{path}: cannot write ({exc.strerror or exc}); nothing written") from None
             raise
-    legacy = legacy_sidecar_path(path)
-    meta = read_sidecar(legacy) if legacy.exists() else None
-    if meta is not None and meta.get("mesh") == path.name:
-        legacy.unlink(missing_ok=True)  # an earlier version's sidecar of the mesh just replaced
+    legacy = legacy_sidecar(path)
+    if legacy is not None:
+        legacy.unlink(missing_ok=True)  # it described the mesh just replaced
     return side
 
 
