@@ -12,7 +12,7 @@ import torch
 from ultraboneudf.config import DEPTH_WIDTHS, PRESETS, Config, apply_overrides, model_widths, preset
 from ultraboneudf.errors import InputError
 from ultraboneudf.fields.mlp import DistanceMLP, count_parameters
-from ultraboneudf.losses import (consistency_chamfer_loss, lsgan_discriminator_loss, lsgan_generator_loss,
+from ultraboneudf.training.losses import (consistency_chamfer_loss, lsgan_discriminator_loss, lsgan_generator_loss,
                                  pull_loss, sign_consistency_loss)
 from ultraboneudf.methods import METHODS, get_method
 from ultraboneudf.methods.capudf import capudf_samples, even_subsample

@@ -41,7 +41,7 @@ def _estimates(monkeypatch, iters, step_s, after_s, steps=None, steady_from=0):
     of a fake clock (``ESTIMATE_AFTER_S`` = ``after_s``)."""
     import torch
 
-    from ultraboneudf import training
+    from ultraboneudf.training import log as training
 
     clock = [0.0]
     monkeypatch.setattr(training, "time", SimpleNamespace(perf_counter=lambda: clock[0]))

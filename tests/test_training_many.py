@@ -10,7 +10,7 @@ from ultraboneudf.config import preset
 from ultraboneudf.fields.mlp import DistanceMLP
 from ultraboneudf.geometry.queries import anchors, gaussian_queries, grid_queries, query_spread
 from ultraboneudf.training import TrainingData, train
-from ultraboneudf.training_many import StackedMLP, train_many
+from ultraboneudf.training import StackedMLP, train_many
 
 
 def _data(seed, n=1200, bump=0.0):
@@ -70,11 +70,23 @@ def test_train_many_equals_separate_runs(gs_anchors, os_rows, gs_form):
         torch.testing.assert_close(trained[k](x), net(x), rtol=1e-3, atol=1e-4)
 
 
-def test_train_many_rejects_unsupported_losses():
+@pytest.mark.parametrize("kind,lambda_eik", [("pull", 0.0), ("capudf", 0.0), ("tangent", 0.1)])
+def test_every_loss_trains_several_scans_as_separate_runs(kind, lambda_eik):
+    """The pull and CAP-UDF losses and L_Eik (with L_OS on every surface point: padded) in the one
+    loop: two scans together equal each alone."""
     cfg = preset("fast")
-    cfg.loss.kind = "pull"
-    with pytest.raises(ValueError, match="tangent loss"):
-        train_many(_nets(1), [_data(0)], cfg.loss, cfg.train, [0])
+    cfg.train.iters, cfg.train.batch, cfg.train.warmup, cfg.train.threads = 30, 200, 4, 0
+    cfg.loss.kind, cfg.loss.lambda_eik, cfg.loss.lambda_os, cfg.loss.os_rows = kind, lambda_eik, 1.0, 0
+    datas, seeds = [_data(0), _data(1, bump=0.05)], [3, 4]
+    trained, results = train_many(_nets(2), datas, cfg.loss, cfg.train, seeds, log_every=1)
+    for k in range(2):
+        net = _nets(2)[k]
+        alone = train(net, datas[k], cfg.loss, cfg.train, seeds[k], log_every=1).history
+        assert set(results[k].history) == set(alone)
+        for key in alone:
+            np.testing.assert_allclose(results[k].history[key], alone[key], rtol=2e-4, atol=1e-6)
+        x = torch.randn(100, 3) * 0.4
+        torch.testing.assert_close(trained[k](x), net(x), rtol=1e-3, atol=1e-4)
 
 
 @pytest.mark.parametrize("preset", ["fast", "robust"])   # robust: the surface distance target too

@@ -108,7 +108,7 @@ def test_warm_start_regresses_the_static_distance_first():
 
 def test_far_term_is_the_static_distance_error_beyond_the_threshold():
     from ultraboneudf.geometry.neighbors import NearestIndex
-    from ultraboneudf.training import loss_terms
+    from ultraboneudf.training import OneScan, StepDraw, loss_terms
 
     data = _plane_data()
     index = NearestIndex(data.surface)
@@ -118,7 +118,7 @@ def test_far_term_is_the_static_distance_error_beyond_the_threshold():
     net = DistanceMLP((16, 16), generator=torch.Generator().manual_seed(2))
     batch = torch.arange(0, 4000, 7)
     q = data.queries[batch]
-    terms = loss_terms(net, q, batch, data, cfg, index)
+    terms = {k: v[0] for k, v in loss_terms(OneScan(net), [data], StepDraw([batch]), cfg, [index], None, None).items()}
     d = (q - data.static_targets[batch]).norm(dim=1)
     far = d > 0.05
     assert 0 < int(far.sum()) < len(q)
@@ -131,7 +131,7 @@ def test_broadcast_global_shape_loss_is_the_reference_mse_and_its_closed_form():
     """The reference's ``nn.MSELoss()(u (G, 1), t (G,))`` broadcasts to G × G pairs."""
     import warnings
 
-    from ultraboneudf.losses import global_shape_loss
+    from ultraboneudf.training.losses import global_shape_loss
 
     g = torch.Generator().manual_seed(0)
     u, t = torch.rand(50, generator=g), torch.rand(50, generator=g) ** 2

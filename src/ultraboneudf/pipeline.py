@@ -221,7 +221,7 @@ def reconstruct_many(clouds_mm: Sequence[Any], preset: str = DEFAULT_PRESET, dev
                      progress: Progress | None = None, quiet: bool = True,
                      sources: Sequence[str] | None = None, **overrides: Any) -> list[Reconstruction]:
     """Reconstruct several scans with UltraBoneUDF, training their fields together in one batched
-    loop (:mod:`ultraboneudf.training_many`): for dataset runs, where per-step overhead dominates.
+    loop (:mod:`ultraboneudf.training`): for dataset runs, where per-step overhead dominates.
 
     Each scan is pre-processed, normalised, extracted and mapped back on its own, exactly as
     :func:`reconstruct` (same preset, overrides and ``seed`` for every scan), and its field equals the

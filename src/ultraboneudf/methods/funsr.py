@@ -16,7 +16,7 @@ from ..config import Config, SHORT_PRESETS
 from ..fields.base import normalize
 from ..fields.mlp import MLPField, count_parameters, value_and_grad
 from ..geometry.surface_fit import LocalPlanes
-from ..losses import lsgan_discriminator_loss, lsgan_generator_loss, pull_loss, sign_consistency_loss
+from ..training.losses import lsgan_discriminator_loss, lsgan_generator_loss, pull_loss, sign_consistency_loss
 from ..progress import QUIET, Progress
 from ..training import LoopLog, StridedSampler, learning_rate
 from .base import Fitted

@@ -121,9 +121,9 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
 def fit_many(clouds: list[np.ndarray], cfg: Config, device: torch.device, seed: int,
              progress: Progress = QUIET, planes: list[LocalPlanes | None] | None = None) -> list[Fitted]:
     """:func:`fit` for several unit-space clouds at once: each is prepared on its own, then their
-    fields train together in one batched loop (:func:`~ultraboneudf.training_many.train_many`,
+    fields train together in one batched loop (:func:`~ultraboneudf.training.train_many`,
     equal step for step to separate runs); ``train_s`` is the batch's."""
-    from ..training_many import train_many
+    from ..training import train_many
 
     planes = planes if planes is not None else [None] * len(clouds)
     datas, prep, stages = [], [], []

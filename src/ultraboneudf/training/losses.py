@@ -46,12 +46,12 @@ def far_field_loss(u: torch.Tensor, distance: torch.Tensor, threshold: float) ->
 def pull_loss(moved: torch.Tensor, target: torch.Tensor, norm: str = "squared") -> torch.Tensor:
     """``L_pull = mean ‖q' − t(q)‖²`` with the static nearest surface point ``t(q)`` (Eq. 3);
     ``norm="unsquared"`` gives ``mean ‖q' − t(q)‖`` (FUNSR's code, §4.3)."""
-    sq = (moved - target).square().sum(dim=1)
+    sq = (moved - target).square().sum(dim=-1)
     if norm == "squared":
-        return sq.mean()
+        return _mean(sq)
     if norm == "unsquared":
         # tiny ε: the norm's gradient is undefined where q' = t exactly
-        return (sq + 1e-12).sqrt().mean()
+        return _mean((sq + 1e-12).sqrt())
     raise ValueError(f"unknown pull norm {norm!r}")
 
 
@@ -118,7 +118,12 @@ def on_surface_loss(u_surface: torch.Tensor, mask: torch.Tensor | None = None) -
     return _mean(u_surface.square(), mask)
 
 
-def eikonal_loss(*grads: torch.Tensor) -> torch.Tensor:
-    """``L_Eik`` = Σ (‖∇u‖ − 1)² over all given gradient sets divided by their total count (Eq. 10)."""
-    total = sum((g.norm(dim=1) - 1.0).square().sum() for g in grads)
-    return total / sum(len(g) for g in grads)
+def eikonal_loss(g_surface: torch.Tensor, g_queries: torch.Tensor,
+                 mask: torch.Tensor | None = None) -> torch.Tensor:
+    """``L_Eik`` = Σ (‖∇u‖ − 1)² over the gradients at the surface points (…, S, 3; those ``mask``
+    keeps) and at the batch queries (…, M, 3), divided by their total count (Eq. 10)."""
+    a = (g_surface.norm(dim=-1) - 1.0).square()
+    b = (g_queries.norm(dim=-1) - 1.0).square()
+    if mask is None:
+        return (a.sum(dim=-1) + b.sum(dim=-1)) / (a.shape[-1] + b.shape[-1])
+    return ((a * mask).sum(dim=-1) + b.sum(dim=-1)) / (mask.sum(dim=-1) + b.shape[-1])
