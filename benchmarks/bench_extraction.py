@@ -25,7 +25,8 @@ import time
 import torch
 
 from ultraboneudf.config import DMU_DEFAULTS, ExtractConfig
-from ultraboneudf.extraction import clean, extract_mesh, mesh_quality
+from ultraboneudf.extraction import extract_mesh, mesh_quality
+from ultraboneudf.extraction.dualmesh import edge_crossing as clean
 from ultraboneudf.extraction import dualmesh as dm
 from ultraboneudf.fields import DiscUDF, PlaneUDF, SphereUDF, TorusUDF
 from ultraboneudf.fields.analytic import sphere_area, torus_area

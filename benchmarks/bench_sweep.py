@@ -31,7 +31,7 @@ import trimesh
 from ultraboneudf.sweep import BoneDetector, read_sweep, sweep_to_points
 from ultraboneudf.sweep.bone import classical_bone_masks
 from ultraboneudf.sweep.figures import contact_sheet, mark_dilation, overlay, render_points, save_png
-from ultraboneudf.sweep.readers.images import read_image
+from ultraboneudf.sweep.formats.images import read_image
 from ultraboneudf.synth.simulator import SimulationConfig, simulate_sweep
 from ultraboneudf.synth.truth import mask_precision_recall, point_to_mesh_distance, surface_coverage
 

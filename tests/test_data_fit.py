@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from ultraboneudf.extraction import data_fit
+from ultraboneudf.evaluation.data_fit import data_fit
 
 
 def disc_mesh(radius: float, n: int = 96) -> trimesh.Trimesh:

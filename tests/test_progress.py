@@ -91,7 +91,7 @@ def test_tree_distances_report_their_rows_and_give_the_same_answer():
 def test_reading_frames_reports_each_frame(tmp_path):
     import numpy as np
 
-    from ultraboneudf.sweep.readers.images import read_stack, write_png
+    from ultraboneudf.sweep.formats.images import read_stack, write_png
 
     paths = []
     for k in range(3):

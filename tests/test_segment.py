@@ -10,7 +10,7 @@ import torch
 
 from ultraboneudf.errors import InputError
 from ultraboneudf.sweep import BoneDetector, LearnedSegmenter, segment_bone
-from ultraboneudf.sweep.readers.images import read_image
+from ultraboneudf.sweep.formats.images import read_image
 from ultraboneudf.sweep.segment import rows_to_mask
 
 SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "ultrabones100k_sample"

@@ -9,7 +9,7 @@ import pytest
 from ultraboneudf.cli import main
 from ultraboneudf.errors import InputError
 from ultraboneudf.sweep import Sweep, read_sweep
-from ultraboneudf.sweep.readers import metaio, ultrabones
+from ultraboneudf.sweep.formats import metaio, ultrabones
 from ultraboneudf.sweep.transforms import format_matrix, rigid_from_euler
 
 

@@ -10,8 +10,8 @@ import pytest
 
 from ultraboneudf.errors import InputError
 from ultraboneudf.sweep import Sweep, SweepWarning, detect_layout, is_sweep_path, read_sweep, write_sweep
-from ultraboneudf.sweep.readers import metaio, nrrd_seq, ultrabones
-from ultraboneudf.sweep.readers.images import load_mask_stack, write_png
+from ultraboneudf.sweep.formats import metaio, nrrd_seq, ultrabones
+from ultraboneudf.sweep.formats.images import load_mask_stack, write_png
 from ultraboneudf.sweep.transforms import rigid_from_euler
 
 SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "ultrabones100k_sample"

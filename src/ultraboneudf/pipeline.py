@@ -25,7 +25,8 @@ from .checkpoints import Checkpoint
 from .config import DEFAULT_PRESET, Config, DataConfig, ExtractConfig, apply_overrides, preset as make_preset, validate
 from .devices import resolve_device
 from .errors import FitWarning, InputError
-from .extraction import data_fit, extract_mesh, mesh_quality, trim_to_support
+from .evaluation.data_fit import data_fit
+from .extraction import extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
 from .geometry.normalize import Normalizer
 from .geometry.support import DataSurface
@@ -52,7 +53,7 @@ class Reconstruction:
     counts: dict[str, int]
     quality: dict[str, float]
     data_fit: dict[str, float]
-    """The mesh against its own input (``extraction.data_fit``, ``extract.fit_mm``); empty when off."""
+    """The mesh against its own input (:func:`~ultraboneudf.evaluation.data_fit.data_fit`, ``extract.fit_mm``); empty when off."""
     device: str
     seed: int
     normalizer: Normalizer

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import io
 from pathlib import Path
 
 import numpy as np
@@ -11,8 +10,6 @@ import numpy as np
 from ..errors import InputError
 from ..progress import Progress
 from .sweep_input import add_sweep_options, sweep_points
-
-POINT_SUFFIXES = (".ply", ".npz", ".npy", ".xyz", ".txt", ".csv")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -42,42 +39,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def encode_points(path: Path, cp) -> bytes:
-    """Bytes of the point file for ``path``'s suffix (see ``--output``)."""
-    suffix = path.suffix.lower()
-    pts = cp.points
-    if suffix == ".ply":
-        n = len(pts)
-        dtype = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("frame", "<i4"),
-                          ("beam_x", "<f4"), ("beam_y", "<f4"), ("beam_z", "<f4"),
-                          ("probe_x", "<f8"), ("probe_y", "<f8"), ("probe_z", "<f8")])
-        rec = np.empty(n, dtype=dtype)
-        rec["x"], rec["y"], rec["z"] = pts.T
-        rec["frame"] = cp.frame_index
-        rec["beam_x"], rec["beam_y"], rec["beam_z"] = cp.beam_direction.T
-        rec["probe_x"], rec["probe_y"], rec["probe_z"] = cp.probe_position.T
-        header = ["ply", "format binary_little_endian 1.0",
-                  "comment bone points compounded from a tracked ultrasound sweep (ultraboneudf), mm",
-                  "comment frame: source frame index; beam: unit beam direction; probe: scan-line origin",
-                  f"element vertex {n}", "property double x", "property double y", "property double z",
-                  "property int frame", "property float beam_x", "property float beam_y",
-                  "property float beam_z", "property double probe_x", "property double probe_y",
-                  "property double probe_z", "end_header"]
-        return ("\n".join(header) + "\n").encode("ascii") + rec.tobytes()
-    if suffix == ".npz":
-        buf = io.BytesIO()
-        np.savez_compressed(buf, **cp.as_dict())
-        return buf.getvalue()
-    if suffix == ".npy":
-        buf = io.BytesIO()
-        np.save(buf, pts)
-        return buf.getvalue()
-    sep = "," if suffix == ".csv" else " "
-    lines = ["x,y,z,frame"] if suffix == ".csv" else []
-    lines += [f"{x:.6f}{sep}{y:.6f}{sep}{z:.6f}{sep}{f}" for (x, y, z), f in zip(pts, cp.frame_index)]
-    return ("\n".join(lines) + "\n").encode("ascii")
-
-
 def _write_overlays(sweep, masks: np.ndarray, folder: Path) -> list[Path]:
     from ..sweep.figures import contact_sheet, mark_dilation, overlay, save_png
 
@@ -96,7 +57,7 @@ def _write_overlays(sweep, masks: np.ndarray, folder: Path) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..io import atomic_write_bytes
+    from ..io import POINT_SUFFIXES, atomic_write_bytes, encode_points
 
     progress = Progress(quiet=args.quiet)
     out: Path = args.output

@@ -132,7 +132,7 @@ def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, to
     from ..sweep import align_frames, read_sweep, segment_sweep, sweep_to_points
     from ..sweep.bone import classical_bone_masks
     from ..sweep.chain import frames_coplanar
-    from ..sweep.readers.images import load_mask_stack
+    from ..sweep.formats.images import load_mask_stack
 
     sweep = read_sweep(path, progress=progress, **read_options(args, path))
     chain = sweep.meta.get("chain")

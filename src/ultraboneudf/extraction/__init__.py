@@ -16,10 +16,9 @@ from ..config import ExtractConfig, check_choices, choices
 from ..errors import InputError
 from ..fields.base import Field
 from ..progress import QUIET, Progress
-from .clean import clean_udf_mesh
 from .marching import (capudf_marching_cubes, sdf_marching_cubes, udf_to_sdf_marching_cubes)
-from .dualmesh import CORNER, EDGE, PLANE, TYPE_NAMES, band_threshold, dualmesh_udf
-from .quality import data_fit, mesh_quality
+from .dualmesh import CORNER, EDGE, PLANE, TYPE_NAMES, band_threshold, clean_udf_mesh, dualmesh_udf
+from .quality import mesh_quality
 from .trim import trim_to_support
 
 MODES: tuple[str, ...] = choices(ExtractConfig, "mode")
@@ -66,5 +65,5 @@ def extract_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET, *
 
 
 __all__ = ["extract_mesh", "dualmesh_udf", "clean_udf_mesh", "capudf_marching_cubes", "sdf_marching_cubes",
-           "udf_to_sdf_marching_cubes", "mesh_quality", "data_fit", "trim_to_support", "band_threshold", "MODES",
+           "udf_to_sdf_marching_cubes", "mesh_quality", "trim_to_support", "band_threshold", "MODES",
            "CORNER", "EDGE", "PLANE", "TYPE_NAMES"]

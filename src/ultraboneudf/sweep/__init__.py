@@ -22,7 +22,7 @@ from .learned import LearnedSegmenter, load_model
 from .model import Sweep, SweepWarning
 from .outliers import radius_outlier_mask, statistical_outlier_mask
 from .points import points_from_sweep, segment_sweep, sweep_to_points
-from .readers import LAYOUTS, detect_layout, is_sweep_path, read_sweep, write_sweep
+from .formats import LAYOUTS, detect_layout, is_sweep_path, read_sweep, write_sweep
 from .segment import BoneDetector, segment_bone
 from .transforms import check_rigid, pixels_to_world, rigid_from_euler
 

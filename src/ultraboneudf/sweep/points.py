@@ -19,7 +19,7 @@ from .compound import CompoundedPoints, compound
 from .learned import LearnedSegmenter, is_model_path
 from .model import Sweep
 from .outliers import statistical_outlier_mask
-from .readers import read_sweep
+from .formats import read_sweep
 from .bone import classical_bone_masks
 from .segment import BoneDetector
 
@@ -70,7 +70,7 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
 
     Args:
         sweep: a :class:`Sweep`, or the path of a sweep folder / sequence file (read with
-            :func:`~ultraboneudf.sweep.readers.read_sweep` and ``read_options``).
+            :func:`~ultraboneudf.sweep.formats.read_sweep` and ``read_options``).
         segment: ``auto`` | ``masks`` | ``classical`` | model file path (see :func:`segment_sweep`).
         masks: bone masks for the frames (array ``(F, H, W)``, folder of PNGs, ``.npy``/``.npz``),
             overriding the sweep's own.
@@ -92,7 +92,7 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
     elif read_options:
         raise TypeError(f"read options {sorted(read_options)} need a path, not a Sweep")
     if isinstance(masks, (str, os.PathLike)):
-        from .readers.images import load_mask_stack  # noqa: PLC0415
+        from .formats.images import load_mask_stack  # noqa: PLC0415
 
         sweep = sweep.with_masks(load_mask_stack(masks, sweep.n_frames, sweep.image_size,
                                                  [Path(n).stem for n in sweep.frame_names]))

@@ -40,7 +40,6 @@ Model (all lengths in mm):
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 from dataclasses import asdict, dataclass, field
@@ -57,7 +56,7 @@ from ..errors import InputError
 from ..io import atomic_write_bytes, save_json
 from ..progress import QUIET, Progress
 from ..sweep.model import Sweep
-from ..sweep.readers import ultrabones
+from ..sweep.formats import ultrabones
 from ..sweep.transforms import pixels_to_world, rigid_from_euler
 from .slicing import MeshArrays, first_hits, slice_plane
 from .sweep_config import NOISE_PRESETS, SimulationConfig, config_with_noise

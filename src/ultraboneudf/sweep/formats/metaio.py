@@ -11,7 +11,7 @@ origin (``pixel_offset = 0``); the pose chain to the reference (``ImageToReferen
 configuration, see :mod:`ultraboneudf.sweep.chain`) carries the mm-per-pixel scaling;
 ``ElementSpacing`` is not used for geometry. Frames stored in an orientation other than ``MF`` are
 flipped to ``MF`` on reading (PLUS calibrations are for ``MF``; see
-:mod:`ultraboneudf.sweep.readers.plus_common`).
+:mod:`ultraboneudf.sweep.formats.plus_common`).
 """
 
 from __future__ import annotations

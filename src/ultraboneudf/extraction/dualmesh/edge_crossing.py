@@ -1,4 +1,5 @@
-"""Clean extraction: one layer of surface with every edge shared by at most two faces.
+"""Edge-crossing extraction (``extract.mode = clean``): one layer of surface with every edge shared by
+at most two faces.
 
 Why the faithful extractor is not clean: its band is about three leaf cells thick and every
 vertex-owning cell of it takes part in quads, so a sheet comes out as stacked, folded layers
@@ -48,24 +49,13 @@ import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
-from ..config import ExtractConfig
-from ..errors import InputError
-from ..fields.base import Field, normalize
-from ..progress import QUIET, Progress
-from .dualmesh import (
-    RING_OFFSETS,
-    Lattice,
-    LeafSamples,
-    band_leaves,
-    build_mesh,
-    lookup_cells,
-    merge_vertices,
-    pack,
-    sample_leaves,
-    solve_leaves,
-    unique_rows,
-    unpack,
-)
+from ...config import ExtractConfig
+from ...errors import InputError
+from ...fields.base import Field, normalize
+from ...progress import QUIET, Progress
+from .mesh import RING_OFFSETS, build_mesh, lookup_cells, merge_vertices, unique_rows
+from .octree import Lattice, LeafSamples, band_leaves, pack, sample_leaves, unpack
+from .qef import solve_leaves
 
 _PERTURB = torch.tensor([0.5257311121, 0.6180339887, 0.5847102846], dtype=torch.float64)
 _PERTURB_CELLS = 1e-3   # δ of the symbolic perturbation, in leaf cells

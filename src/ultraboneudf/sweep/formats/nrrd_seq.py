@@ -143,7 +143,7 @@ def read(path: str | os.PathLike, masks: str | os.PathLike | None = None,
         path: the NRRD file.
         masks: optional mask stack for the same frames (folder of PNGs, ``.npy``, ``.npz``).
         transform, calibration, reference, image_frame, image_to_probe: the pose chain, as for
-            :func:`ultraboneudf.sweep.readers.metaio.read`.
+            :func:`ultraboneudf.sweep.formats.metaio.read`.
         transforms: transform sequence file(s) (``.seq.mha`` as 3D Slicer writes them, or any
             PLUS metafile) holding the per-frame transforms, when the NRRD has none.
         as_masks: the pixel data are bone masks (non-zero = bone), not B-mode frames.

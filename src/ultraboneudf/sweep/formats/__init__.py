@@ -1,4 +1,5 @@
-"""Sweep readers, one module per layout, and a registry that detects the layout of a path.
+"""Sweep file formats, one module per layout (readers, and writers where the layout has one), and a
+registry that detects the layout of a path.
 
 | layout | what | module |
 | --- | --- | --- |

@@ -1,31 +1,20 @@
-"""Reading point clouds and meshes, writing meshes and JSON atomically, validating input.
-
-Point clouds are in millimetres, as ``(N, 3)`` float64 arrays. Readers are chosen by extension
-(:data:`POINT_READERS`); every problem with a file is an :class:`~ultraboneudf.errors.InputError`
-whose message names the file. Writers never leave a half-written file: they write a temporary file
-beside the target and rename it.
-"""
+"""Point clouds in and out: readers by extension (:data:`POINT_READERS`), validation of the
+coordinates (mm), and the writer of compounded sweep points. Every problem with a file is an
+:class:`~ultraboneudf.errors.InputError` whose message names the file."""
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
-import json
 import os
-import shutil
-import signal
-import tempfile
-import threading
+from io import BytesIO
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 import trimesh
 
-from .errors import InputError
+from ..errors import InputError
 
 MIN_POINTS = 100
-MESH_SUFFIXES = (".ply", ".obj", ".stl")
 
 
 # --------------------------------------------------------------------------------------------
@@ -276,204 +265,49 @@ def load_points(path: str | os.PathLike, min_points: int = MIN_POINTS) -> np.nda
 
 
 # --------------------------------------------------------------------------------------------
-# meshes
+# the writer of compounded sweep points
+
+POINT_SUFFIXES = (".ply", ".npz", ".npy", ".xyz", ".txt", ".csv")
+"""The point cloud formats :func:`encode_points` writes."""
 
 
-def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
-    """Read a triangle mesh (``.ply``, ``.obj``, ``.stl``, ``.off``) without altering it."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: no such file")
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:
-        raise InputError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise InputError(f"{path}: holds no triangles")
-    return mesh
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder and a rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _write_temp(path, data)
-    try:
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def check_mesh_path(path: str | os.PathLike) -> Path:
-    """Return ``path`` as a Path if its suffix is a mesh format we write, else raise InputError."""
-    path = Path(path)
-    if path.suffix.lower() not in MESH_SUFFIXES:
-        raise InputError(f"{path}: unknown mesh extension {path.suffix!r}; "
-                         f"use one of {', '.join(MESH_SUFFIXES)}")
-    return path
-
-
-def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> None:
-    """Write a mesh atomically; the format follows the suffix (``.ply`` binary, ``.obj``, ``.stl``)."""
-    path = check_mesh_path(path)
-    data = trimesh.exchange.export.export_mesh(mesh, file_obj=None, file_type=path.suffix[1:].lower())
-    atomic_write_bytes(path, data if isinstance(data, bytes) else data.encode("utf-8"))
-
-
-def sidecar_path(mesh_path: str | os.PathLike) -> Path:
-    """The JSON sidecar of a mesh file: the mesh's whole name plus ``.json`` (``bone.ply`` →
-    ``bone.ply.json``), so that meshes of different formats never share one."""
-    path = Path(mesh_path)
-    return path.with_name(path.name + ".json")
-
-
-def legacy_sidecar(mesh_path: str | os.PathLike) -> Path | None:
-    """An earlier version's sidecar of ``mesh_path`` (``bone.ply`` → ``bone.json``, a name every
-    format shared): its path if this package wrote it and it names this mesh, else ``None``."""
-    mesh = Path(mesh_path)
-    legacy = mesh.with_suffix(".json")
-    meta = read_sidecar(legacy) if legacy.exists() else None
-    return legacy if meta is not None and meta.get("mesh") == mesh.name else None
-
-
-def read_sidecar(path: str | os.PathLike) -> dict[str, Any] | None:
-    """The sidecar at ``path`` if it is one this package wrote (a JSON object with ``method``,
-    ``config`` and ``version``), else ``None`` (missing, unreadable, or someone else's file)."""
-    try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) and {"method", "config", "version"} <= data.keys() else None
-
-
-FREE_SPACE_BYTES = 64 << 20
-"""Refuse to start a run whose output folder has less free space than this."""
-
-
-def check_outputs(mesh_path: str | os.PathLike, inputs: tuple[str | os.PathLike, ...] = ()) -> Path:
-    """Check, before any work, that writing ``mesh_path`` and its sidecar loses nothing: neither is
-    an input nor inside an input folder; an existing mesh is replaced only with its own sidecar
-    (an earlier output of this package, under either sidecar name, replaced as a unit); an
-    existing sidecar only if this package wrote it for this mesh; the folder is writable and has
-    room. Raises
-    :class:`InputError` naming the file; returns ``mesh_path`` as a :class:`Path`."""
-    mesh = check_mesh_path(mesh_path)
-    side = sidecar_path(mesh)
-    for given in map(Path, inputs):
-        if not given.exists():
-            continue
-        for out in (mesh, side):
-            if given.is_dir() and out.resolve().is_relative_to(given.resolve()):
-                raise InputError(f"{out}: inside the input folder {given}; write the output elsewhere")
-            if out.exists() and out.samefile(given):
-                raise InputError(f"{out}: is the input; the input is never overwritten, choose another "
-                                 f"output name")
-    meta = read_sidecar(side) if side.exists() else None
-    if side.exists() and meta is None:
-        raise InputError(f"{side}: exists and is not a sidecar of ultraboneudf; writing {mesh} would "
-                         f"replace it (choose another output name)")
-    if meta is not None and meta.get("mesh", mesh.name) != mesh.name:
-        raise InputError(f"{side}: is the sidecar of {meta['mesh']}; choose another output name for "
-                         f"{mesh.name}")
-    if mesh.exists() and meta is None and legacy_sidecar(mesh) is None:
-        raise InputError(f"{mesh}: exists and is not an output of ultraboneudf (no sidecar {side.name}); "
-                         f"choose another output name or remove it")
-    folder = mesh.parent if mesh.parent.exists() else next(
-        (p for p in mesh.resolve().parents if p.exists()), Path("."))
-    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-        raise InputError(f"{mesh}: cannot write into {folder} (permission denied)")
-    free = shutil.disk_usage(folder).free
-    if free < FREE_SPACE_BYTES:
-        raise InputError(f"{mesh}: only {free / 2**20:.0f} MB free in {folder}; need at least "
-                         f"{FREE_SPACE_BYTES >> 20} MB")
-    return mesh
-
-
-def save_mesh_with_sidecar(mesh: trimesh.Trimesh, path: str | os.PathLike, sidecar: dict[str, Any]) -> Path:
-    """Write the mesh (format by suffix) and its sidecar (:func:`sidecar_path`) as a pair: both go
-    to temporary files first, then the mesh and last the sidecar are renamed into place; on any
-    failure, a signal (SIGTERM is turned into an exception while this runs) or Ctrl-C, both are
-    removed, so a mesh never stands without its sidecar. An earlier version's sidecar of the mesh
-    replaced (``NAME.json``) is removed once the pair is in place. Returns the sidecar path."""
-    path = check_mesh_path(path)
-    side = sidecar_path(path)
-    data = trimesh.exchange.export.export_mesh(mesh, file_obj=None, file_type=path.suffix[1:].lower())
-    blobs = [(path, data if isinstance(data, bytes) else data.encode("utf-8")),
-             (side, (json.dumps({**sidecar, "mesh": path.name}, indent=2) + "\n").encode("utf-8"))]
-    temps: list[str] = []
-    placed: list[Path] = []
-    with _sigterm_raises():
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            for target, blob in blobs:
-                temps.append(_write_temp(target, blob))
-            for (target, _), tmp in zip(blobs, temps):
-                os.replace(tmp, target)
-                placed.append(target)
-        except BaseException as exc:
-            for name in temps:
-                Path(name).unlink(missing_ok=True)
-            if len(placed) < len(blobs):
-                for target in placed:
-                    target.unlink(missing_ok=True)
-            if isinstance(exc, OSError):
-                raise InputError(f"{path}: cannot write ({exc.strerror or exc}); nothing written") from None
-            raise
-    legacy = legacy_sidecar(path)
-    if legacy is not None:
-        legacy.unlink(missing_ok=True)  # it described the mesh just replaced
-    return side
-
-
-def _write_temp(target: Path, data: bytes) -> str:
-    """``data`` in a new temporary file beside ``target`` with the permissions a plain ``open``
-    would give; returns its name."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return tmp
-
-
-@contextlib.contextmanager
-def _sigterm_raises():
-    """While the block runs (main thread only), SIGTERM raises :class:`SystemExit` instead of
-    killing the process, so that the block's clean-up runs."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def _raise(signum, frame):
-        raise SystemExit(128 + signum)
-
-    before = signal.signal(signal.SIGTERM, _raise)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, before)
-
-
-def save_json(obj: Any, path: str | os.PathLike) -> None:
-    """Write ``obj`` as indented JSON atomically."""
-    atomic_write_bytes(path, (json.dumps(obj, indent=2) + "\n").encode("utf-8"))
-
-
-def sha256_file(path: str | os.PathLike) -> str:
-    """Hex SHA-256 of a file's bytes (folders: of their sorted file names and contents)."""
-    path = Path(path)
-    h = hashlib.sha256()
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
-    for f in files:
-        if path.is_dir():
-            h.update(str(f.relative_to(path)).encode())
-        with open(f, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                h.update(block)
-    return h.hexdigest()
+def encode_points(path: Path, cp: Any) -> bytes:
+    """Bytes of a point file of compounded sweep points ``cp`` (:class:`~ultraboneudf.sweep.compound.
+    CompoundedPoints`: points in mm, frame index, beam direction, probe position) in the format of
+    ``path``'s suffix: ``.ply`` (binary, with every per-point field), ``.npz`` (every field),
+    ``.npy`` (points), ``.csv`` / ``.xyz`` / ``.txt`` (points and frame index as text)."""
+    suffix = path.suffix.lower()
+    if suffix not in POINT_SUFFIXES:
+        raise InputError(f"{path}: unknown point cloud extension {path.suffix!r}; use one of "
+                         f"{', '.join(POINT_SUFFIXES)}")
+    pts = cp.points
+    if suffix == ".ply":
+        n = len(pts)
+        dtype = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("frame", "<i4"),
+                          ("beam_x", "<f4"), ("beam_y", "<f4"), ("beam_z", "<f4"),
+                          ("probe_x", "<f8"), ("probe_y", "<f8"), ("probe_z", "<f8")])
+        rec = np.empty(n, dtype=dtype)
+        rec["x"], rec["y"], rec["z"] = pts.T
+        rec["frame"] = cp.frame_index
+        rec["beam_x"], rec["beam_y"], rec["beam_z"] = cp.beam_direction.T
+        rec["probe_x"], rec["probe_y"], rec["probe_z"] = cp.probe_position.T
+        header = ["ply", "format binary_little_endian 1.0",
+                  "comment bone points compounded from a tracked ultrasound sweep (ultraboneudf), mm",
+                  "comment frame: source frame index; beam: unit beam direction; probe: scan-line origin",
+                  f"element vertex {n}", "property double x", "property double y", "property double z",
+                  "property int frame", "property float beam_x", "property float beam_y",
+                  "property float beam_z", "property double probe_x", "property double probe_y",
+                  "property double probe_z", "end_header"]
+        return ("\n".join(header) + "\n").encode("ascii") + rec.tobytes()
+    if suffix == ".npz":
+        buf = BytesIO()
+        np.savez_compressed(buf, **cp.as_dict())
+        return buf.getvalue()
+    if suffix == ".npy":
+        buf = BytesIO()
+        np.save(buf, pts)
+        return buf.getvalue()
+    sep = "," if suffix == ".csv" else " "
+    lines = ["x,y,z,frame"] if suffix == ".csv" else []
+    lines += [f"{x:.6f}{sep}{y:.6f}{sep}{z:.6f}{sep}{f}" for (x, y, z), f in zip(pts, cp.frame_index)]
+    return ("\n".join(lines) + "\n").encode("ascii")
