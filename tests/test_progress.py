@@ -78,7 +78,7 @@ def test_tree_distances_report_their_rows_and_give_the_same_answer():
     import numpy as np
     from scipy.spatial import cKDTree
 
-    from ultraboneudf.evaluation.neighbors import tree_distances
+    from ultraboneudf.geometry.neighbors import tree_distances
 
     rng = np.random.default_rng(0)
     ref, query = rng.normal(size=(5000, 3)), rng.normal(size=(250_001, 3))

@@ -29,7 +29,7 @@ from .metrics import (
     prepare_ground_truth,
     pseudo_gt_mask,
 )
-from .neighbors import nearest_distances
+from ..geometry.neighbors import nearest_distances
 from .render import (
     colormap,
     reference_points,

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import trimesh
-from scipy.spatial import cKDTree
 
 from ..extraction.trim import unsupported_faces
+from ..geometry.neighbors import kd_tree
 
 _FIT_MAX_POINTS = 200_000  # input points checked for coverage (every k-th row beyond this)
 _FIT_MAX_SAMPLES = 2_000_000  # area samples standing in for the mesh
@@ -38,7 +38,7 @@ def data_fit(mesh: trimesh.Trimesh | None, points: np.ndarray, threshold_mm: flo
     count = int(min(_FIT_MAX_SAMPLES, max(10_000, np.ceil(area / spacing**2))))
     samples, _ = trimesh.sample.sample_surface(mesh, count, seed=0)
     checked = pts[:: max(1, int(np.ceil(len(pts) / _FIT_MAX_POINTS)))]
-    to_mesh, _ = cKDTree(samples).query(checked, k=1, workers=-1)
+    to_mesh, _ = kd_tree(samples).query(checked, k=1, workers=-1)
     far_faces = unsupported_faces(mesh, pts, threshold_mm)
     return {"threshold_mm": float(threshold_mm),
             "input_far_fraction": float((to_mesh > threshold_mm).mean()),

@@ -27,11 +27,10 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Optional, Union
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..errors import InputError
+from ..geometry.neighbors import KDTree, grid_distances, kd_tree, spatially_sorted, surface_tree, tree_distances
 from ..progress import QUIET, Progress
-from .neighbors import build_tree, grid_distances, spatially_sorted, tree_distances
 from .sampling import DegenerateMeshError, MeshLike, sample_surface, surface_area
 
 DEFAULT_SAMPLES = 5_000_000
@@ -86,7 +85,7 @@ def directed_distances(source: np.ndarray, target: np.ndarray, workers: int = -1
     source = np.asarray(source, dtype=np.float64)
     target = np.asarray(target, dtype=np.float64)
     if device == "cpu":
-        return tree_distances(build_tree(target), source, workers=workers)
+        return tree_distances(surface_tree(target), source, workers=workers)
     return grid_distances(source, target, device=device, workers=workers)
 
 
@@ -104,7 +103,7 @@ def pseudo_gt_mask(gt_samples: np.ndarray, raw_points: np.ndarray, tau_mm: float
     tau = float(tau_mm)
     if not (np.isfinite(tau) and tau >= 0):
         raise InputError(f"pseudo-GT threshold: must be a finite number ≥ 0 mm, got {tau_mm}")
-    tree = cKDTree(np.asarray(raw_points, dtype=np.float64), leafsize=32)
+    tree = kd_tree(np.asarray(raw_points, dtype=np.float64))
     gt_samples = np.asarray(gt_samples, dtype=np.float64)
     # the search stops at the bound; a hair above τ keeps points at exactly τ (≤ τ, not < τ)
     d, _ = tree.query(gt_samples, k=1, distance_upper_bound=np.nextafter(tau, np.inf), workers=workers)
@@ -132,12 +131,12 @@ class GroundTruth:
     drawn: int
     pseudo_gt_mm: Optional[float]
     seed: int
-    _tree: Optional[cKDTree] = field(default=None, repr=False)
+    _tree: Optional[KDTree] = field(default=None, repr=False)
 
     @property
-    def tree(self) -> cKDTree:
+    def tree(self) -> KDTree:
         if self._tree is None:
-            self._tree = build_tree(self.points)
+            self._tree = surface_tree(self.points)
         return self._tree
 
 
@@ -281,7 +280,7 @@ def evaluate(recon: Optional[MeshLike], gt: Union[MeshLike, GroundTruth],
     with progress.stage("distances", len(s_r) + len(truth.points)) as advance:
         if device == "cpu":
             d_rg = tree_distances(truth.tree, s_r, workers=workers, presorted=True, advance=advance)
-            d_gr = tree_distances(build_tree(s_r), truth.points, workers=workers, presorted=True,
+            d_gr = tree_distances(surface_tree(s_r), truth.points, workers=workers, presorted=True,
                                   advance=advance)
         else:
             d_rg = grid_distances(s_r, truth.points, device=device, workers=workers)

@@ -27,9 +27,9 @@ from dataclasses import dataclass
 from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..errors import InputError
+from ..geometry.neighbors import kd_tree
 from ..io import atomic_write_bytes
 from .sampling import MeshLike, face_areas, mesh_arrays
 
@@ -84,7 +84,7 @@ def vertex_distances(vertices: np.ndarray, reference_points: np.ndarray, workers
     out = np.full(len(v), np.nan)
     ok = np.isfinite(v).all(axis=1)
     if ok.any():
-        out[ok] = cKDTree(np.asarray(reference_points, dtype=np.float64)).query(v[ok], workers=workers)[0]
+        out[ok] = kd_tree(np.asarray(reference_points, dtype=np.float64)).query(v[ok], workers=workers)[0]
     return out
 
 

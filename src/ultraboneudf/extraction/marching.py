@@ -26,10 +26,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 import trimesh
-from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ..fields.base import Field, normalize
+from ..geometry.neighbors import kd_tree
 from ..progress import QUIET, Progress
 
 # ---------------------------------------------------------------------------------------------
@@ -282,7 +282,7 @@ def udf_to_sdf_marching_cubes(field: Field, mode: str = "normal-sign", resolutio
                                  "use a method that provides them (carotidudf, vanilla_udf) or "
                                  "--set extract.udf2sdf=eps-shell")
             u, g = field.value_and_grad(pts, chunk=batch)
-            _, idx = cKDTree(surface).query(pts.numpy(), k=1, workers=-1)
+            _, idx = kd_tree(surface).query(pts.numpy(), k=1, workers=-1)
             dot = (g.numpy() * normals[idx]).sum(axis=1)
             phi = np.where(dot >= 0, u.numpy(), -u.numpy())
         elif mode == "eps-shell":

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 import trimesh
-from scipy.spatial import cKDTree
 
+from ..geometry.neighbors import kd_tree
 from ..geometry.support import DataSurface
 
 
@@ -26,7 +26,7 @@ def unsupported_faces(mesh: trimesh.Trimesh, support: np.ndarray | DataSurface, 
     if isinstance(support, DataSurface):
         dist = support.distance(mesh.vertices)
     else:
-        dist, _ = cKDTree(support).query(mesh.vertices, k=1, workers=-1)
+        dist, _ = kd_tree(support).query(mesh.vertices, k=1, workers=-1)
     return dist[mesh.faces].mean(axis=1) >= max_distance
 
 

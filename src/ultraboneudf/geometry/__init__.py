@@ -1,10 +1,10 @@
 """Geometry on point sets: down-sampling, FPS, nearest neighbours, query sampling, normals,
-normalisation."""
+normalisation. Names are imported on first use, so that the evaluation can use the nearest
+neighbours without loading PyTorch."""
 
-from .fps import farthest_point_sampling
-from .neighbors import NearestIndex, knn_distance
-from .normalize import Normalizer
-from .voxel import voxel_downsample, voxel_downsample_with
+from .._lazy import lazy_getattr
 
-__all__ = ["farthest_point_sampling", "NearestIndex", "knn_distance", "Normalizer", "voxel_downsample",
-           "voxel_downsample_with"]
+_WHERE = {"farthest_point_sampling": "fps", "NearestIndex": "neighbors", "knn_distance": "neighbors",
+          "Normalizer": "normalize", "voxel_downsample": "voxel", "voxel_downsample_with": "voxel"}
+__getattr__ = lazy_getattr(__name__, _WHERE, globals())
+__all__ = sorted(_WHERE)

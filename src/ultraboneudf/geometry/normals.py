@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
-from scipy.spatial import cKDTree
+
+from .neighbors import kd_tree
 
 
 def pca_normals(points: np.ndarray, cloud: np.ndarray, radius: float = 0.5, max_nn: int = 1_000,
@@ -20,7 +21,7 @@ def pca_normals(points: np.ndarray, cloud: np.ndarray, radius: float = 0.5, max_
     """Unit normals (N, 3) at ``points`` (N, 3): the smallest-eigenvalue eigenvector of the covariance
     of the hybrid neighbourhood in ``cloud`` (M, 3) — the ``max_nn`` nearest points within ``radius``
     (the point itself included). Sign is arbitrary; a neighbourhood of < 3 points gives +z."""
-    tree = cKDTree(cloud)
+    tree = kd_tree(cloud)
     k = int(min(max_nn, len(cloud)))
     out = np.zeros((len(points), 3))
     out[:, 2] = 1.0
@@ -52,7 +53,7 @@ def orient_tangent_plane(points: np.ndarray, normals: np.ndarray, k: int = 15) -
     if n < 2:
         return out
     kk = int(min(k + 1, n))
-    _, idx = cKDTree(points).query(points, k=kk, workers=-1)
+    _, idx = kd_tree(points).query(points, k=kk, workers=-1)
     rows = np.repeat(np.arange(n), kk - 1)
     cols = idx[:, 1:].reshape(-1)
     # + 1e-6: zero-cost edges (parallel normals) must stay edges for the sparse graph

@@ -4,9 +4,9 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .fps import farthest_point_sampling
+from .neighbors import kd_tree
 from .neighbors import knn_distance
 
 
@@ -78,7 +78,7 @@ def anchors(surface: np.ndarray, kind: str, resolution: int, squared: bool,
     else:
         raise ValueError(f"unknown anchor kind {kind!r}")
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    dist, _ = cKDTree(surface).query(grid, k=1, workers=-1)
+    dist, _ = kd_tree(surface).query(grid, k=1, workers=-1)
     target = dist**2 if squared else dist
     keep = target > min_target
     return grid[keep], target[keep]

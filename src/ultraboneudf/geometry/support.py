@@ -18,7 +18,8 @@ end.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from .neighbors import kd_tree
 
 
 class DataSurface:
@@ -34,7 +35,7 @@ class DataSurface:
         self.bridge = np.where(planar, np.asarray(bridge, dtype=np.float64), 0.0)
         self.reach = np.where(planar, np.broadcast_to(np.asarray(reach, dtype=np.float64), planar.shape), 0.0)
         self.k = int(min(k, len(self.points)))
-        self.tree = cKDTree(self.points)
+        self.tree = kd_tree(self.points)
 
     def distance(self, x: np.ndarray, chunk: int = 65_536) -> np.ndarray:
         """(M,) distance from each row of ``x`` (M, 3) to the surface (see the module docstring)."""

@@ -38,8 +38,8 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from .neighbors import kd_tree
 from .voxel import voxel_downsample
 
 _ROBUST_ROUNDS = 2
@@ -137,7 +137,7 @@ def _local_noise(on_plane: np.ndarray, offset: np.ndarray, valid: np.ndarray, k:
     rows = np.flatnonzero(valid)
     if len(rows) == 0:
         return out
-    _, idx = cKDTree(on_plane[rows]).query(on_plane[rows], k=int(min(k, len(rows))), workers=-1)
+    _, idx = kd_tree(on_plane[rows]).query(on_plane[rows], k=int(min(k, len(rows))), workers=-1)
     idx = idx.reshape(len(rows), -1)
     out[rows] = 1.4826 * np.median(np.abs(offset[rows][idx]), axis=1)
     return out
@@ -148,7 +148,7 @@ def _fit_at(pts: np.ndarray, rows: np.ndarray, radius: float, view: np.ndarray |
     """Fits of the points ``pts[rows]`` at one radius: normal, offset, neighbour count and whether
     the plane is accepted."""
     cloud = voxel_downsample(pts, radius / 4.0)
-    tree = cKDTree(cloud)
+    tree = kd_tree(cloud)
     k = int(min(max_neighbors, len(cloud)))
     m = len(rows)
     normal, offset = np.zeros((m, 3)), np.zeros(m)
@@ -245,7 +245,7 @@ def shadowed(points: np.ndarray, view: np.ndarray, margin: float, depth: float =
     out = np.zeros(len(pts), dtype=bool)
     if len(pts) < 2:
         return out
-    tree = cKDTree(pts)
+    tree = kd_tree(pts)
     for d in np.arange(margin, depth + 1e-9, tolerance / 2):  # probes half a tolerance apart
         dist, _ = tree.query(pts - d * view, k=1, distance_upper_bound=tolerance, workers=-1)
         out |= np.isfinite(dist)

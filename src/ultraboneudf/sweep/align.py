@@ -28,9 +28,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from ..geometry.neighbors import kd_tree
 from ..geometry.surface_fit import robust_quadric_fit
 from .compound import CompoundedPoints
 
@@ -163,7 +163,7 @@ def _heights(cp: CompoundedPoints, sample: np.ndarray, frame: np.ndarray, elevat
     pts, fr = cp.points[sample], frame[sample]
     view = pts - cp.probe_position[sample]
     view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
-    tree = cKDTree(pts)
+    tree = kd_tree(pts)
     k = int(min(max_neighbors, len(pts)))
     m = len(pts)
     height, normal = np.zeros(m), np.zeros((m, 3))

@@ -13,8 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from ..geometry.neighbors import kd_tree
 from .model import Sweep
 from .transforms import pixels_to_world
 
@@ -62,7 +62,7 @@ def consistent_detections(sweep: Sweep, rows: np.ndarray, neighbours: int = 2, r
         ok = np.isfinite(rows[i])
         pts = pixels_to_world(p2w[i], cols[ok], rows[i][ok])
         points.append((np.flatnonzero(ok), pts))
-        trees.append(cKDTree(pts) if len(pts) else None)
+        trees.append(kd_tree(pts) if len(pts) else None)
     normals = sweep.image_to_world[:, :3, 2]
     origins = sweep.image_to_world[:, :3, 3]
     out = rows.copy()

@@ -9,7 +9,8 @@ many frames (a fascia line), which is the segmenter's job.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from ..geometry.neighbors import kd_tree
 
 
 def knn_mean_distance(points: np.ndarray, k: int) -> np.ndarray:
@@ -19,7 +20,7 @@ def knn_mean_distance(points: np.ndarray, k: int) -> np.ndarray:
     if n < 2:
         return np.zeros(n)
     k = int(min(max(1, k), n - 1))
-    dist, _ = cKDTree(pts).query(pts, k=k + 1, workers=1)
+    dist, _ = kd_tree(pts).query(pts, k=k + 1, workers=1)
     return dist[:, 1:].mean(axis=1)
 
 
@@ -48,6 +49,6 @@ def radius_outlier_mask(points: np.ndarray, radius_mm: float, min_neighbors: int
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) == 0:
         return np.zeros(0, dtype=bool)
-    tree = cKDTree(pts)
+    tree = kd_tree(pts)
     counts = tree.query_ball_point(pts, r=radius_mm, return_length=True, workers=1)
     return (np.asarray(counts) - 1) >= min_neighbors

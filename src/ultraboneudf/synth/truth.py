@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 from scipy import ndimage
-from scipy.spatial import cKDTree
+
+from ..geometry.neighbors import kd_tree
 
 
 def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray,
@@ -63,7 +64,7 @@ def point_to_mesh_distance(points: np.ndarray, mesh: trimesh.Trimesh, candidates
     if len(faces) and mesh.edges_unique_length.max() > max_edge_mm:
         vertices, faces = trimesh.remesh.subdivide_to_size(vertices, faces, max_edge=max_edge_mm)
     tri = np.asarray(vertices, dtype=np.float64)[faces]
-    tree = cKDTree(tri.mean(axis=1))
+    tree = kd_tree(tri.mean(axis=1))
     k = int(min(candidates, len(tri)))
     out = np.empty(len(pts))
     for s in range(0, len(pts), chunk):
@@ -91,7 +92,7 @@ def surface_coverage(surface: trimesh.Trimesh, points: np.ndarray, radius_mm: fl
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
     t = tri[face]
     pts = t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
-    d, _ = cKDTree(np.asarray(points, dtype=np.float64)).query(pts, k=1, distance_upper_bound=radius_mm)
+    d, _ = kd_tree(np.asarray(points, dtype=np.float64)).query(pts, k=1, distance_upper_bound=radius_mm)
     return float(np.mean(np.isfinite(d)))
 
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import torch
 
+from ..geometry.neighbors import brute_force_nearest
+
 
 def _mean(x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
     """Mean over the last axis, of the entries ``mask`` keeps (all when ``None``)."""
@@ -55,17 +57,6 @@ def pull_loss(moved: torch.Tensor, target: torch.Tensor, norm: str = "squared") 
     raise ValueError(f"unknown pull norm {norm!r}")
 
 
-def _nearest_rows(a: torch.Tensor, b: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
-    """Index (len(a),) of the nearest row of ``b`` for every row of ``a``, without a graph; chunked
-    so that a 20,000 × 20,000 stage-2 batch never materialises whole."""
-    out = []
-    with torch.no_grad():
-        b_sq = b.square().sum(dim=1)
-        for ac in a.split(chunk):
-            out.append(torch.addmm(b_sq, ac, b.T, beta=1.0, alpha=-2.0).argmin(dim=1))
-    return torch.cat(out)
-
-
 def consistency_chamfer_loss(targets: torch.Tensor, moved: torch.Tensor) -> torch.Tensor:
     """CAP-UDF's consistency-aware loss (§3.3): symmetric L1 Chamfer distance between the batch
     targets ``A = {t(q)}`` (K, 3) and the moved queries ``B = {q'}`` (K, 3), Euclidean (not squared).
@@ -73,8 +64,9 @@ def consistency_chamfer_loss(targets: torch.Tensor, moved: torch.Tensor) -> torc
     The matching is found without a graph and the matched distances are recomputed with one: the
     gradient of a minimum is the gradient of its arg-min term, so this equals differentiating the
     full matrix."""
-    to_b = _nearest_rows(targets, moved)
-    to_a = _nearest_rows(moved, targets)
+    # chunked: a 20,000 × 20,000 stage-2 batch never materialises whole
+    to_b = brute_force_nearest(targets, moved, chunk=4096)
+    to_a = brute_force_nearest(moved, targets, chunk=4096)
     d_ab = ((targets - moved[to_b]).square().sum(dim=1) + 1e-12).sqrt()
     d_ba = ((moved - targets[to_a]).square().sum(dim=1) + 1e-12).sqrt()
     return 0.5 * (d_ab.mean() + d_ba.mean())

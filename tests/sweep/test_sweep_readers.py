@@ -14,7 +14,7 @@ from ultraboneudf.sweep.formats import metaio, nrrd_seq, ultrabones
 from ultraboneudf.sweep.formats.images import load_mask_stack, write_png
 from ultraboneudf.sweep.transforms import rigid_from_euler
 
-SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "ultrabones100k_sample"
+SAMPLE = Path(__file__).resolve().parents[3] / "shared" / "data" / "ultrabones100k_sample"
 
 
 def make_sweep(n=5, w=12, h=9, spacing=(0.2, 0.2), offset=0.5, seed=0, masks=True) -> Sweep:

@@ -159,7 +159,7 @@ def test_a_pool_of_two_workers_gives_the_same_table_as_one(dataset, tmp_path):
     assert strip(finished_rows(one)) == strip(finished_rows(two))
 
 
-FEMUR = Path(__file__).resolve().parents[2] / "shared" / "data" / "bones" / "femur.ply"
+FEMUR = Path(__file__).resolve().parents[3] / "shared" / "data" / "bones" / "femur.ply"
 
 
 @pytest.mark.skipif(not FEMUR.exists(), reason=f"{FEMUR} not present")
@@ -168,7 +168,7 @@ def test_the_gpu_check_runs_on_the_cpu_in_quick_mode(tmp_path):
     import subprocess
     import sys
 
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_check.py"
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "gpu_check.py"
     res = subprocess.run([sys.executable, str(script), "--quick", "--out", str(tmp_path)],
                          capture_output=True, text=True, timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]

@@ -13,7 +13,7 @@ from ultraboneudf.sweep import BoneDetector, LearnedSegmenter, segment_bone
 from ultraboneudf.sweep.formats.images import read_image
 from ultraboneudf.sweep.segment import rows_to_mask
 
-SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "ultrabones100k_sample"
+SAMPLE = Path(__file__).resolve().parents[3] / "shared" / "data" / "ultrabones100k_sample"
 SPACING = 0.1
 
 

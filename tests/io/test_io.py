@@ -118,7 +118,7 @@ def test_coordinates_beyond_a_kilometre_are_refused_before_the_numerics():
 
 def test_an_os_error_while_reading_is_one_line(tmp_path, monkeypatch):
     """A failing disk (EIO) while reading: the reader's OSError is raised here (the permission case
-    runs for real in test_outputs.py)."""
+    runs for real in io/test_outputs.py)."""
     from ultraboneudf import io as uio
 
     path = tmp_path / "locked.xyz"

@@ -19,7 +19,7 @@ from ultraboneudf.io import sidecar_path
 from ultraboneudf.errors import InputError
 from ultraboneudf.sweep import SweepWarning, read_sweep
 
-PLUS = Path(__file__).resolve().parents[2] / "shared" / "data" / "plus"
+PLUS = Path(__file__).resolve().parents[3] / "shared" / "data" / "plus"
 pytestmark = pytest.mark.skipif(not PLUS.is_dir(), reason=f"{PLUS} not present")
 
 BONE, BONE_CFG = "BoneUltrasound_L14.igs.mha", "BoneUltrasound_L14_config.xml"

@@ -92,3 +92,22 @@ def test_official_query_count_for_20000_rows():
     sigma = torch.as_tensor(knn_distance(data.surface.double().numpy(), 50), dtype=torch.float32)
     d = (data.queries[:400_000].reshape(20_000, 20, 3) - data.surface[:, None]).norm(dim=2) / sigma[:, None]
     assert abs(float(d.median()) - 1.538) < 0.02
+
+
+def test_the_nearest_neighbour_back_ends_agree():
+    """The KD-tree, the tensors' index and the chunked brute force find the same nearest points (no
+    ties among random points), and every KD-tree of the package is made in geometry/neighbors.py."""
+    from pathlib import Path
+
+    import ultraboneudf
+    from ultraboneudf.geometry.neighbors import NearestIndex, brute_force_nearest, kd_tree
+
+    rng = np.random.default_rng(0)
+    points, queries = rng.normal(size=(3000, 3)), rng.normal(size=(1000, 3)) * 1.5
+    _, expected = kd_tree(points).query(queries)
+    p, q = torch.as_tensor(points), torch.as_tensor(queries)
+    assert np.array_equal(NearestIndex(p).query(q).numpy(), expected)
+    assert np.array_equal(brute_force_nearest(q, p, chunk=333).numpy(), expected)
+    package = Path(ultraboneudf.__file__).parent
+    builders = sorted(str(f.relative_to(package)) for f in package.rglob("*.py") if "cKDTree" in f.read_text())
+    assert builders == ["geometry/neighbors.py"]

@@ -1,5 +1,5 @@
 """The method registry, each method's defaults, the baselines' networks (Appendix C parameter
-counts), losses, sampling and normals. Training runs live in test_baselines.py."""
+counts), losses, sampling and normals. Training runs live in test_baselines.py beside it."""
 
 from __future__ import annotations
 

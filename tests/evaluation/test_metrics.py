@@ -17,7 +17,7 @@ from ultraboneudf.evaluation import (
     pseudo_gt_mask,
     sample_surface,
 )
-from ultraboneudf.evaluation.neighbors import grid_distances, nearest_distances
+from ultraboneudf.geometry.neighbors import grid_distances, nearest_distances
 
 N = 100_000  # samples per surface in these tests (5e6 is for the benchmark)
 
