@@ -149,8 +149,6 @@ class DataConfig(_Section):
     queries: Literal["ultraboneudf", "capudf"] = "ultraboneudf"
     """Query recipe: ``ultraboneudf`` (§1.3, ``queries_per_point`` per row + grid queries) or
     ``capudf`` (§3.1: random subset of a multiple of 60 rows, spread κ·σ(p), ⌊total/N⌋ rounds)."""
-    capudf_total_queries: int = 1_000_000
-    """CAP-UDF recipe: about this many queries in all (rounds = ⌊total / N⌋)."""
 
 
 @dataclass
@@ -173,23 +171,6 @@ class ModelConfig(_Section):
     depth: int = 0
     """§6.4 depth rule: when > 0, ``hidden`` is replaced by the first ``depth`` entries of
     :data:`DEPTH_WIDTHS` (experiment E4); 0 uses ``hidden`` as given."""
-    poisson_depth: int = 9
-    """Poisson method (§7): octree depth."""
-    poisson_scale: float = 1.1
-    """Poisson method: the octree cube is this × the input's bounding cube."""
-    poisson_normals: Literal["ultraboneudf", "knn30"] = "ultraboneudf"
-    """Poisson method normals (§7.2): ``ultraboneudf`` (PCA radius 0.5, ≤ 1,000 neighbours) or
-    ``knn30`` (PCA over 30 neighbours); oriented as ``poisson_orientation`` says."""
-    poisson_orientation: Literal["auto", "tangent", "probe"] = "auto"
-    """Poisson method normal orientation (§7.2): ``tangent`` (tangent-plane propagation, 15
-    neighbours), ``probe`` (each normal turned toward the probe position of its point, alternative B;
-    needs per-point probe positions: a sweep input or ``reconstruct(..., probe_positions=…)``) or
-    ``auto`` (``probe`` when probe positions are present, else ``tangent``)."""
-    poisson_backend: Literal["auto", "pymeshlab", "open3d"] = "auto"
-    """Poisson library: ``auto`` (first installed of pymeshlab, open3d), ``pymeshlab`` or ``open3d``."""
-    poisson_threads: int = 0
-    """Poisson solver threads; 0 = ``torch.get_num_threads()``. On an oversubscribed CPU the OpenMP
-    solver slows down > 10× with 2 threads (measured 2 s → 34 s); use 1 there."""
 
 
 @dataclass
@@ -246,10 +227,6 @@ class LossConfig(_Section):
     0 = all of them every step (the reference)."""
     lambda_eik: float = 0.0
     """Eikonal term (Eq. 10); experiment E5 only."""
-    lambda_scc: float = 0.005
-    """FUNSR sign-consistency weight (§4.3)."""
-    lambda_adl: float = 0.005
-    """FUNSR adversarial on-surface weight (§4.3)."""
 
 
 @dataclass
@@ -275,23 +252,6 @@ class TrainConfig(_Section):
     """Peak learning rate of Adam, reached after ``warmup`` steps, then a cosine decay to 0 (§0.6)."""
     warmup: int = 1_000
     """Linear warm-up iterations from lr = 0 (§0.6)."""
-    disc_lr: float = 1e-3
-    """FUNSR discriminator learning rate (constant, §4.4)."""
-    expand_at: int = 0
-    """CAP-UDF progressive expansion (§3.4): after this many iterations densify ``P`` and switch to
-    ``expand_batch``; 0 = never (one stage)."""
-    expand_batch: int = 20_000
-    """CAP-UDF stage-2 batch size."""
-    expand_candidates: int = 1_000_000
-    """CAP-UDF: generated candidate surface points (``eval_num_points``)."""
-    expand_df_filter: float = 0.01
-    """CAP-UDF: keep candidates whose predicted distance is below this (unit space)."""
-    expand_low_range: float = 1.1
-    """CAP-UDF: candidate spread = this × the std of the batch offsets ``q − t``."""
-    expand_outlier: float = 0.002
-    """CAP-UDF: discard candidates at distance ≥ this from ``P`` (unit space)."""
-    expand_rate: float = 1.0
-    """CAP-UDF: keep about ``expand_rate · N`` candidates (``extra_points_rate``), spread evenly."""
 
 
 @dataclass
@@ -386,6 +346,70 @@ class ExtractConfig(_Section):
 
 
 @dataclass
+class PoissonConfig(_Section):
+    """The screened-Poisson baseline (``--method poisson``, §7)."""
+
+    SECTION: ClassVar[str] = "poisson"
+
+    octree_depth: int = 9
+    """Octree depth of the screened Poisson solver (§7)."""
+    scale: float = 1.1
+    """The octree cube is this × the input's bounding cube."""
+    normals: Literal["ultraboneudf", "knn30"] = "ultraboneudf"
+    """Normals (§7.2): ``ultraboneudf`` (PCA radius 0.5, ≤ 1,000 neighbours) or
+    ``knn30`` (PCA over 30 neighbours); oriented as ``orientation`` says."""
+    orientation: Literal["auto", "tangent", "probe"] = "auto"
+    """Normal orientation (§7.2): ``tangent`` (tangent-plane propagation, 15
+    neighbours), ``probe`` (each normal turned toward the probe position of its point, alternative B;
+    needs per-point probe positions: a sweep input or ``reconstruct(..., probe_positions=…)``) or
+    ``auto`` (``probe`` when probe positions are present, else ``tangent``)."""
+    backend: Literal["auto", "pymeshlab", "open3d"] = "auto"
+    """The Poisson library: ``auto`` (first installed of pymeshlab, open3d), ``pymeshlab`` or ``open3d``."""
+    solver_threads: int = 0
+    """Solver threads; 0 = ``torch.get_num_threads()``. On an oversubscribed CPU the OpenMP
+    solver slows down > 10× with 2 threads (measured 2 s → 34 s); use 1 there."""
+
+
+@dataclass
+class CapudfConfig(_Section):
+    """CAP-UDF (``--method capudf``, §3): its query recipe's size and the progressive expansion."""
+
+    SECTION: ClassVar[str] = "capudf"
+
+    total_queries: int = 1_000_000
+    """``data.queries=capudf``: about this many queries in all (rounds = ⌊total / N⌋)."""
+    expand_at: int = 0
+    """Progressive expansion (§3.4): after this many iterations densify ``P`` and switch to
+    ``expand_batch``; 0 = never (one stage)."""
+    expand_batch: int = 20_000
+    """Stage-2 batch size."""
+    expand_candidates: int = 1_000_000
+    """Generated candidate surface points (``eval_num_points``)."""
+    expand_df_filter: float = 0.01
+    """Keep candidates whose predicted distance is below this (unit space)."""
+    expand_low_range: float = 1.1
+    """Candidate spread = this × the std of the batch offsets ``q − t``."""
+    expand_outlier: float = 0.002
+    """Discard candidates at distance ≥ this from ``P`` (unit space)."""
+    expand_rate: float = 1.0
+    """Keep about ``expand_rate · N`` candidates (``extra_points_rate``), spread evenly."""
+
+
+@dataclass
+class FunsrConfig(_Section):
+    """FUNSR (``--method funsr``, §4): the sign-consistency and adversarial terms."""
+
+    SECTION: ClassVar[str] = "funsr"
+
+    lambda_scc: float = 0.005
+    """Sign-consistency weight (§4.3)."""
+    lambda_adl: float = 0.005
+    """Adversarial on-surface weight (§4.3)."""
+    disc_lr: float = 1e-3
+    """Discriminator learning rate (constant, §4.4)."""
+
+
+@dataclass
 class Config:
     """A whole reconstruction's configuration."""
 
@@ -394,6 +418,9 @@ class Config:
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     extract: ExtractConfig = field(default_factory=ExtractConfig)
+    poisson: PoissonConfig = field(default_factory=PoissonConfig)
+    capudf: CapudfConfig = field(default_factory=CapudfConfig)
+    funsr: FunsrConfig = field(default_factory=FunsrConfig)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict (tuples become lists)."""

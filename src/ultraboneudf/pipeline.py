@@ -176,7 +176,7 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
         the position of the probe that imaged point ``i`` (``CompoundedPoints.probe_position`` from
         :func:`ultraboneudf.sweep.sweep_to_points`). Voxel-averaged with the points and normalised
         with the same map. Used by methods that can (Poisson orients its normals toward the probe,
-        ``model.poisson_orientation``); ignored by the others.
+        ``poisson.orientation``); ignored by the others.
     checkpoint : save the training's state every ``checkpoint.every`` steps to ``checkpoint.path``
         and, with ``checkpoint.resume``, continue a killed run from it (same result as an
         uninterrupted run); for the methods that train with the shared loop (not FUNSR or Poisson).

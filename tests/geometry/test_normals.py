@@ -136,9 +136,9 @@ def stub_solver(monkeypatch):
 def test_poisson_orientation_choice_and_sidecar(stub_solver, choice, with_probe, expected):
     p, n_true, probe, band = two_band_sweep()
     rec = ultraboneudf.reconstruct(p, device="cpu", method="poisson", probe_positions=probe if with_probe else None,
-                                   **{"model.poisson_orientation": choice, "data.voxel_size_mm": 0.0})
+                                   **{"poisson.orientation": choice, "data.voxel_size_mm": 0.0})
     assert rec.sidecar()["method_info"]["poisson_orientation"] == expected
-    assert rec.sidecar()["config"]["model"]["poisson_orientation"] == choice
+    assert rec.sidecar()["config"]["poisson"]["orientation"] == choice
     surface, normals = stub_solver[-1]
     _, row = cKDTree(rec.normalizer.forward(p)).query(surface)
     outward = (normals * n_true[row]).sum(axis=1) > 0
@@ -150,11 +150,11 @@ def test_poisson_orientation_choice_and_sidecar(stub_solver, choice, with_probe,
 
 def test_poisson_orientation_errors():
     p, _, probe, _ = two_band_sweep(n=100)
-    with pytest.raises(InputError, match=r"unknown model.poisson_orientation 'sideways'; choose one of auto, tangent, probe"):
+    with pytest.raises(InputError, match=r"unknown poisson.orientation 'sideways'; choose one of auto, tangent, probe"):
         ultraboneudf.reconstruct(p, device="cpu", method="poisson", probe_positions=probe,
-                                 **{"model.poisson_orientation": "sideways"})
+                                 **{"poisson.orientation": "sideways"})
     with pytest.raises(InputError, match="needs per-point probe positions"):
-        ultraboneudf.reconstruct(p, device="cpu", method="poisson", **{"model.poisson_orientation": "probe"})
+        ultraboneudf.reconstruct(p, device="cpu", method="poisson", **{"poisson.orientation": "probe"})
     assert resolve_orientation("auto", True) == "probe" and resolve_orientation("auto", False) == "tangent"
 
 
@@ -179,7 +179,7 @@ def test_poisson_run_with_probe_orientation():
     pytest.importorskip("pymeshlab")
     p, _, probe, _ = two_band_sweep()
     rec = ultraboneudf.reconstruct(p, device="cpu", method="poisson", probe_positions=probe,
-                                   **{"model.poisson_depth": 6, "model.poisson_threads": 1})
+                                   **{"poisson.octree_depth": 6, "poisson.solver_threads": 1})
     assert rec.mesh is not None and len(rec.mesh.faces) > 100
     assert rec.sidecar()["method_info"] == {"poisson_orientation": "probe", "poisson_backend": "pymeshlab"}
     d, _ = cKDTree(p).query(rec.mesh.vertices)

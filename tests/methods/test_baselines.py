@@ -59,8 +59,8 @@ def test_short_run_pull_family(method, term):
 
 
 def test_short_run_capudf_expands_once():
-    rec = run("capudf", **{"train.iters": 80, "train.expand_at": 50, "train.expand_batch": 600, "train.expand_candidates": 3000,
-                           "data.capudf_total_queries": 8_000, "extract.cell_threshold": 0.02})
+    rec = run("capudf", **{"train.iters": 80, "capudf.expand_at": 50, "capudf.expand_batch": 600, "capudf.expand_candidates": 3000,
+                           "capudf.total_queries": 8_000, "extract.cell_threshold": 0.02})
     assert rec.counts["surface_points"] % 60 == 0
     assert rec.counts["expanded_points"] > 0
     assert rec.history["cd"][-1] < rec.history["cd"][0]
@@ -85,14 +85,14 @@ def test_poisson_on_a_sphere_and_on_the_sheet():
     # one thread: the OpenMP solver crawls when the (shared) CPU is oversubscribed
     mesh = screened_poisson(0.3 * d, d, depth=6, threads=1)
     assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 0.3).max() < 0.02
-    rec = run("poisson", **{"model.poisson_depth": 6, "model.poisson_threads": 1})
+    rec = run("poisson", **{"poisson.octree_depth": 6, "poisson.solver_threads": 1})
     assert rec.mesh is not None and rec.counts["parameters"] == 0
     # Poisson closes the open sheet (§7.4): the mesh wraps it, so it reaches the input
     assert near_input_fraction(rec, 3.0) > 0.2
 
 
 def test_poisson_backend_errors_are_actionable():
-    with pytest.raises(InputError, match="poisson_backend"):
+    with pytest.raises(InputError, match="poisson.backend"):
         resolve_backend("nope")
     missing = [m for m in ("pymeshlab", "open3d") if importlib.util.find_spec(m) is None]
     for name in missing:

@@ -14,7 +14,7 @@ from .._version import __version__
 
 EXTRAS = {  # distribution → what it enables
     "pymeshlab": "--method poisson (extra 'poisson')",
-    "open3d": "--method poisson with model.poisson_backend=open3d",
+    "open3d": "--method poisson with poisson.backend=open3d",
     "onnxruntime": "sweep2points --segment MODEL.onnx (extra 'onnx')",
 }
 CORE = ("torch", "numpy", "scipy", "trimesh", "rich", "pillow", "pynrrd")

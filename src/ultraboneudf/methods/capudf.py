@@ -23,7 +23,7 @@ from ..geometry.neighbors import NearestIndex
 from ..geometry.queries import query_spread, surface_subset
 from ..checkpoints import Checkpoint
 from ..progress import QUIET, Progress
-from ..training import StridedSampler, TrainingData, train
+from ..training import Expansion, StridedSampler, TrainingData, train
 from .base import Fitted
 from .ultraboneudf import build_network
 
@@ -44,17 +44,17 @@ def configure(cfg: Config, preset: str) -> None:
     cfg.data.anchors = "none"
     cfg.data.grid_queries = 0
     if preset in SHORT_PRESETS:
-        cfg.train.expand_at = (2 * cfg.train.iters) // 3
-        cfg.train.expand_batch = 4 * cfg.train.batch
-        cfg.train.expand_candidates = 200_000
+        cfg.capudf.expand_at = (2 * cfg.train.iters) // 3
+        cfg.capudf.expand_batch = 4 * cfg.train.batch
+        cfg.capudf.expand_candidates = 200_000
         cfg.extract.resolution = 128
     else:
         cfg.train.iters = 60_000
         cfg.train.batch = 5_000
         cfg.train.lr = 1e-3
         cfg.train.warmup = 1_000
-        cfg.train.expand_at = 40_000
-        cfg.train.expand_batch = 20_000
+        cfg.capudf.expand_at = 40_000
+        cfg.capudf.expand_batch = 20_000
         cfg.extract.resolution = 256
     cfg.extract.mode = "capudf_mc"
     cfg.extract.grid_box = "surface"
@@ -106,18 +106,19 @@ def even_subsample(points: np.ndarray, count: int) -> np.ndarray:
     return points[keep]
 
 
-def make_expansion(cfg: Config, seed: int):
-    """The progressive expansion of §3.4 as a ``train(expand=…)`` callback: generate candidate surface
-    points by moving perturbed targets onto the field, keep the near-surface, non-outlier ones, add an
-    evenly spread ``expand_rate·N`` of them to ``P`` and return the queries' new targets in ``P_dense``.
-    The callback's ``stats`` dict records ``candidates`` and ``added`` points."""
-    tc = cfg.train
+def make_expansion(cfg: Config, seed: int) -> tuple[Expansion, dict[str, int]]:
+    """The progressive expansion of §3.4 for :func:`~ultraboneudf.training.train`: generate candidate
+    surface points by moving perturbed targets onto the field, keep the near-surface, non-outlier
+    ones, add an evenly spread ``expand_rate·N`` of them to ``P`` and return the queries' new targets
+    in ``P_dense``. The dict returned beside it records ``candidates`` and ``added`` points once the
+    expansion has run."""
+    tc = cfg.capudf
     stats: dict[str, int] = {}
 
     def expand(net: nn.Module, data: TrainingData) -> torch.Tensor:
         device = data.queries.device
         gen = torch.Generator(device=device).manual_seed(seed + 40_000)
-        sampler = StridedSampler(len(data.queries), tc.batch, gen, device)
+        sampler = StridedSampler(len(data.queries), cfg.train.batch, gen, device)
         found: list[torch.Tensor] = []
         count, rounds = 0, 0
         max_rounds = 4 * math.ceil(tc.expand_candidates / max(1, sampler.batch)) + 10
@@ -146,8 +147,7 @@ def make_expansion(cfg: Config, seed: int):
         dense = torch.cat([p, torch.as_tensor(chosen, dtype=p.dtype, device=device)])
         return dense[NearestIndex(dense).query(data.queries).to(device)]
 
-    expand.stats = stats  # type: ignore[attr-defined]
-    return expand
+    return Expansion(at=tc.expand_at, batch=tc.expand_batch, targets=expand), stats
 
 
 def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
@@ -160,7 +160,7 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     with progress.stage("sampling", 2) as advance:
         surface = surface_subset(points, d.subset, d.subset_threshold, d.fps_sizes, d.max_points,
                                  device=str(device))
-        p, queries = capudf_samples(surface, d.capudf_total_queries, d.sigma_k, rng)
+        p, queries = capudf_samples(surface, cfg.capudf.total_queries, d.sigma_k, rng)
         advance()
         as_t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
         data = TrainingData(surface=as_t(p), queries=as_t(queries), anchors=as_t(np.zeros((0, 3))),
@@ -169,12 +169,12 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
         advance()
     prep_s = time.perf_counter() - t0
     net = build_network(cfg, seed, device)
-    if 0 < cfg.train.expand_at >= cfg.train.iters:
-        progress.log(f"capudf: train.expand_at={cfg.train.expand_at} ≥ train.iters={cfg.train.iters}; "
+    if 0 < cfg.capudf.expand_at >= cfg.train.iters:
+        progress.log(f"capudf: capudf.expand_at={cfg.capudf.expand_at} ≥ train.iters={cfg.train.iters}; "
                      "one stage only (no progressive expansion)")
-    expand = make_expansion(cfg, seed)
-    result = train(net, data, cfg.loss, cfg.train, seed, progress, expand=expand, checkpoint=checkpoint)
+    expansion, stats = make_expansion(cfg, seed)
+    result = train(net, data, cfg.loss, cfg.train, seed, progress, expansion=expansion, checkpoint=checkpoint)
     counts = {"surface_points": len(p), "queries": len(queries), "anchors": 0,
-              "parameters": count_parameters(net), "expanded_points": expand.stats.get("added", 0)}
+              "parameters": count_parameters(net), "expanded_points": stats.get("added", 0)}
     return Fitted(field=MLPField(net), counts=counts, timings={"preprocess_s": prep_s, "train_s": result.seconds},
                   history=result.history, surface=p)

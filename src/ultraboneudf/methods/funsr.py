@@ -65,9 +65,9 @@ def configure(cfg: Config, preset: str) -> None:
     cfg.loss.pull_norm = "unsquared"
     cfg.loss.lambda_gs = 0.0
     cfg.loss.lambda_os = 0.0
-    cfg.loss.lambda_scc = 0.005
-    cfg.loss.lambda_adl = 0.005
-    cfg.train.disc_lr = 1e-3
+    cfg.funsr.lambda_scc = 0.005
+    cfg.funsr.lambda_adl = 0.005
+    cfg.funsr.disc_lr = 1e-3
     if preset not in SHORT_PRESETS:
         cfg.train.iters = 15_000
         cfg.train.batch = 5_000
@@ -93,7 +93,7 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     generator = torch.Generator(device=device).manual_seed(seed)
     sampler = StridedSampler(len(data.queries), cfg.train.batch, generator, device)
     opt = torch.optim.Adam(net.parameters(), lr=0.0, betas=(0.9, 0.999), eps=1e-8)
-    opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.train.disc_lr, betas=(0.9, 0.999), eps=1e-8)
+    opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.funsr.disc_lr, betas=(0.9, 0.999), eps=1e-8)
     lc, iters = cfg.loss, cfg.train.iters
     net.train()
     with progress.stage("training", iters) as advance:
@@ -115,7 +115,7 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
             opt_d.step()
             # generator term with the just-updated discriminator (its gradients are cleared next step)
             terms["adl"] = lsgan_generator_loss(disc(s))
-            terms["total"] = terms["pull"] + lc.lambda_scc * terms["scc"] + lc.lambda_adl * terms["adl"]
+            terms["total"] = terms["pull"] + cfg.funsr.lambda_scc * terms["scc"] + cfg.funsr.lambda_adl * terms["adl"]
             terms["total"].backward()
             opt.step()
             log.step(i, terms)

@@ -1,13 +1,13 @@
 """Screened Poisson surface reconstruction (§7): depth 9 on the pre-processed cloud with the
 UltraBoneUDF normal recipe (§7.2), no density trimming.
 
-Normal orientation (``model.poisson_orientation``): tangent-plane propagation (the default recipe),
+Normal orientation (``poisson.orientation``): tangent-plane propagation (the default recipe),
 or, when the input carries per-point probe positions (a sweep), each normal turned toward the probe
 that imaged its point (§7.2 alternative B), which stays consistent across gaps between slices.
 
 The solver comes from an optional extra (``pip install 'ultraboneudf[poisson]'``); it is imported
 only when the method runs. Backends: ``pymeshlab`` (the extra's choice: one wheel, NumPy its only
-dependency) and ``open3d`` (the paper's library; a heavier install). ``model.poisson_backend=auto``
+dependency) and ``open3d`` (the paper's library; a heavier install). ``poisson.backend=auto``
 uses the first one installed, in that order.
 """
 
@@ -29,7 +29,7 @@ from .base import Fitted
 BACKENDS = ("pymeshlab", "open3d")
 ORIENTATIONS = ("auto", "tangent", "probe")
 INSTALL_HINT = ("the poisson method needs a screened-Poisson library: pip install 'ultraboneudf[poisson]' "
-                "(installs pymeshlab), or pip install open3d and --set model.poisson_backend=open3d")
+                "(installs pymeshlab), or pip install open3d and --set poisson.backend=open3d")
 
 
 def configure(cfg: Config, preset: str) -> None:
@@ -38,15 +38,15 @@ def configure(cfg: Config, preset: str) -> None:
 
 
 def resolve_orientation(name: str, has_probe: bool) -> str:
-    """The orientation for ``model.poisson_orientation``: ``tangent`` or ``probe`` (``auto`` →
+    """The orientation for ``poisson.orientation``: ``tangent`` or ``probe`` (``auto`` →
     ``probe`` when probe positions are present, else ``tangent``). Raises :class:`InputError` for an
     unknown choice, or for ``probe`` without probe positions."""
     if name not in ORIENTATIONS:
-        raise InputError(f"unknown model.poisson_orientation {name!r}; choose {', '.join(ORIENTATIONS)}")
+        raise InputError(f"unknown poisson.orientation {name!r}; choose {', '.join(ORIENTATIONS)}")
     if name == "auto":
         return "probe" if has_probe else "tangent"
     if name == "probe" and not has_probe:
-        raise InputError("model.poisson_orientation=probe needs per-point probe positions: reconstruct a "
+        raise InputError("poisson.orientation=probe needs per-point probe positions: reconstruct a "
                          "tracked sweep, or pass probe_positions= to reconstruct()")
     return name
 
@@ -62,7 +62,7 @@ def estimate_normals(surface: np.ndarray, cloud: np.ndarray, rule: str,
     elif rule == "knn30":
         raw = pca_normals(surface, cloud, radius=np.inf, max_nn=30)
     else:
-        raise InputError(f"unknown model.poisson_normals {rule!r}; choose ultraboneudf or knn30")
+        raise InputError(f"unknown poisson.normals {rule!r}; choose ultraboneudf or knn30")
     if viewpoints is not None:
         return orient_toward(surface, raw, viewpoints)
     return orient_tangent_plane(surface, raw, 15)
@@ -98,7 +98,7 @@ def _available(name: str) -> bool:
 
 
 def resolve_backend(name: str) -> str:
-    """The backend to use for ``model.poisson_backend``; raises :class:`InputError` with the install
+    """The backend to use for ``poisson.backend``; raises :class:`InputError` with the install
     command when none (or not the requested one) is installed."""
     if name == "auto":
         for candidate in BACKENDS:
@@ -106,9 +106,9 @@ def resolve_backend(name: str) -> str:
                 return candidate
         raise InputError(INSTALL_HINT)
     if name not in BACKENDS:
-        raise InputError(f"unknown model.poisson_backend {name!r}; choose auto, {', '.join(BACKENDS)}")
+        raise InputError(f"unknown poisson.backend {name!r}; choose auto, {', '.join(BACKENDS)}")
     if not _available(name):
-        raise InputError(f"model.poisson_backend={name} is not installed: pip install {name} "
+        raise InputError(f"poisson.backend={name} is not installed: pip install {name} "
                          f"(or use the default: pip install 'ultraboneudf[poisson]')")
     return name
 
@@ -134,8 +134,8 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     """Poisson on the preset's surface subset of the unit-space cloud (scale-invariant, §7.3);
     returns a unit-space mesh. ``probe`` (N, 3), unit space: the probe position of each row of
     ``points``, used by the ``probe`` orientation."""
-    orientation = resolve_orientation(cfg.model.poisson_orientation, probe is not None)
-    backend = resolve_backend(cfg.model.poisson_backend)  # fail before any work when missing
+    orientation = resolve_orientation(cfg.poisson.orientation, probe is not None)
+    backend = resolve_backend(cfg.poisson.backend)  # fail before any work when missing
     if probe is not None and np.shape(probe) != np.shape(points):
         raise InputError(f"probe positions have shape {np.shape(probe)}, expected {np.shape(points)} "
                          f"(one per point)")
@@ -148,13 +148,13 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
         # duplicated FPS rows (official subset) would only double-weight points in the solver
         surface, first = np.unique(points[rows], axis=0, return_index=True)
         viewpoints = probe[rows[first]] if orientation == "probe" else None
-        normals = estimate_normals(surface, points, cfg.model.poisson_normals, viewpoints)
+        normals = estimate_normals(surface, points, cfg.poisson.normals, viewpoints)
         advance()
     prep_s = time.perf_counter() - t0
     t1 = time.perf_counter()
-    with progress.stage(f"screened poisson ({backend}, depth {cfg.model.poisson_depth})", 1) as advance:
-        mesh = screened_poisson(surface, normals, cfg.model.poisson_depth, cfg.model.poisson_scale, backend,
-                                threads=cfg.model.poisson_threads)
+    with progress.stage(f"screened poisson ({backend}, depth {cfg.poisson.octree_depth})", 1) as advance:
+        mesh = screened_poisson(surface, normals, cfg.poisson.octree_depth, cfg.poisson.scale, backend,
+                                threads=cfg.poisson.solver_threads)
         advance()
     return Fitted(mesh=mesh, counts={"surface_points": len(surface), "queries": 0, "parameters": 0},
                   timings={"preprocess_s": prep_s, "train_s": time.perf_counter() - t1},

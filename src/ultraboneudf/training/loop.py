@@ -74,6 +74,17 @@ class TrainingData:
 
 
 @dataclass
+class Expansion:
+    """CAP-UDF's progressive expansion (§3.4) of one scan's training: after ``at`` completed steps
+    ``targets(net, data)`` returns the new static targets (T, 3) and the batch becomes ``batch``;
+    the optimiser state and the schedule carry over. ``at ≤ 0``: never."""
+
+    at: int
+    batch: int
+    targets: Callable[[nn.Module, "TrainingData"], torch.Tensor]
+
+
+@dataclass
 class TrainResult:
     seconds: float
     iterations: int
@@ -185,21 +196,18 @@ def loss_terms(model: nn.Module, datas: Sequence[TrainingData], step: StepDraw, 
 
 def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: TrainConfig,
           seed: int, progress: Progress = QUIET, log_every: int = 100,
-          expand: Callable[[nn.Module, TrainingData], torch.Tensor] | None = None,
-          checkpoint: Checkpoint | None = None) -> TrainResult:
+          expansion: Expansion | None = None, checkpoint: Checkpoint | None = None) -> TrainResult:
     """Optimise ``net`` (any network of (M, 3) → (M,), skip connections included) in place on
     ``data`` for ``train_cfg.iters`` iterations (Adam, §1.7): the loop of :func:`train_many` with
     one scan.
 
-    ``expand`` (CAP-UDF's progressive expansion, §3.4): called once after ``train_cfg.expand_at``
-    completed steps with the network and the data; it returns the new static targets (T, 3), and the
-    batch becomes ``train_cfg.expand_batch``. The optimiser state and the schedule carry over.
+    ``expansion``: CAP-UDF's progressive expansion (:class:`Expansion`).
 
     ``checkpoint``: save the loop's state every ``checkpoint.every`` steps, and with
     ``checkpoint.resume`` start from the saved state (:mod:`~ultraboneudf.checkpoints`): the
     result equals the uninterrupted run's."""
     model = OneScan(net, explicit=train_cfg.step == "optimised")
-    return _loop(model, [data], loss_cfg, train_cfg, [seed], progress, log_every, expand, checkpoint)[0]
+    return _loop(model, [data], loss_cfg, train_cfg, [seed], progress, log_every, expansion, checkpoint)[0]
 
 
 def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: LossConfig,
@@ -228,13 +236,12 @@ def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: Los
 
 def _loop(model: nn.Module, datas: list[TrainingData], loss_cfg: LossConfig, train_cfg: TrainConfig,
           seeds: list[int], progress: Progress, log_every: int,
-          expand: Callable[[nn.Module, TrainingData], torch.Tensor] | None = None,
-          checkpoint: Checkpoint | None = None) -> list[TrainResult]:
-    """The loop itself, for the K fields of ``model`` (:mod:`.scans`); ``expand`` and ``checkpoint``
-    with one scan only (:func:`train`)."""
+          expansion: Expansion | None = None, checkpoint: Checkpoint | None = None) -> list[TrainResult]:
+    """The loop itself, for the K fields of ``model`` (:mod:`.scans`); ``expansion`` and
+    ``checkpoint`` with one scan only (:func:`train`)."""
     check_choices(train_cfg)
     check_choices(loss_cfg)
-    if (expand is not None or checkpoint is not None) and not isinstance(model, OneScan):
+    if (expansion is not None or checkpoint is not None) and not isinstance(model, OneScan):
         raise ValueError("CAP-UDF's expansion and checkpoints train one scan at a time")
     device = datas[0].queries.device
     generators = [torch.Generator(device=device).manual_seed(s) for s in seeds]
@@ -251,11 +258,12 @@ def _loop(model: nn.Module, datas: list[TrainingData], loss_cfg: LossConfig, tra
                if all(len(d.anchors) for d in datas) else None)
     surface = (_Rows([d.surface for d in datas], [torch.zeros(len(d.surface), device=device) for d in datas],
                      loss_cfg.os_rows) if loss_cfg.lambda_os or loss_cfg.lambda_eik else None)
-    expands = expand is not None and train_cfg.expand_at > 0
+    expands = expansion is not None and expansion.at > 0
     net = model.net if isinstance(model, OneScan) else None
     data = datas[0]
     stamp = (checkpoints.fingerprint(data.surface, data.queries, data.anchors, loss_cfg, train_cfg, seeds[0],
-                                     sum(p.numel() for p in net.parameters()))
+                                     sum(p.numel() for p in net.parameters()),
+                                     [expansion.at, expansion.batch] if expands else None)
              if checkpoint is not None else "")
     start, resumed = 0, None
     if checkpoint is not None and checkpoint.resume and checkpoint.path.exists():
@@ -264,26 +272,26 @@ def _loop(model: nn.Module, datas: list[TrainingData], loss_cfg: LossConfig, tra
         net.load_state_dict(resumed["net"])
         opt.load_state_dict(resumed["optimizer"])
         generators[0].set_state(resumed["generator"])
-        if expands and start > train_cfg.expand_at:
+        if expands and start > expansion.at:
             data.static_targets = resumed["static_targets"].to(device)
-            samplers[0] = make_sampler(len(data.queries), train_cfg.expand_batch, generators[0], device)
+            samplers[0] = make_sampler(len(data.queries), expansion.batch, generators[0], device)
         samplers[0].load_state(resumed["sampler"])
         progress.log(f"resumed from {checkpoint.path} at step {start:,} of {iters:,}")
     model.train()
     threads = train_cfg.threads if device.type == "cpu" else 0
     with cpu_threads(threads), progress.stage("training", iters, start=start) as advance:
         # the pace of the last phase: after the warm start, and after CAP-UDF's larger second batch
-        steady = max(warm_steps, train_cfg.expand_at if expands else 0, start)
+        steady = max(warm_steps, expansion.at if expands else 0, start)
         log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr, progress=progress,
                       steady_from=steady)
         if resumed is not None:
             log.resume(resumed["history"], float(resumed["seconds"]))
         for i in range(start, iters):
-            if expands and i == train_cfg.expand_at:
+            if expands and i == expansion.at:
                 net.eval()
-                data.static_targets = expand(net, data)
+                data.static_targets = expansion.targets(net, data)
                 net.train()
-                samplers[0] = make_sampler(len(data.queries), train_cfg.expand_batch, generators[0], device)
+                samplers[0] = make_sampler(len(data.queries), expansion.batch, generators[0], device)
             for group in opt.param_groups:
                 group["lr"] = learning_rate(i, train_cfg.lr, train_cfg.warmup, iters)
             # each scan's draws in the order of a run of it alone: batch, anchors, surface rows
@@ -306,7 +314,7 @@ def _loop(model: nn.Module, datas: list[TrainingData], loss_cfg: LossConfig, tra
                     "sampler": samplers[0].state(), "history": log.history_so_far(),
                     "seconds": log.elapsed(),
                     **({"static_targets": data.static_targets.cpu()}
-                       if expands and i + 1 > train_cfg.expand_at else {})})
+                       if expands and i + 1 > expansion.at else {})})
     seconds, history = log.finish()
     model.eval()
     return [TrainResult(seconds=seconds, iterations=iters,
