@@ -53,8 +53,8 @@ def extract_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET, *
         raise InputError(f"extract.resolution must be at least 2, got {cfg.resolution}")
     if cfg.mode == "capudf_mc":
         lo, hi = _grid_box(cfg, surface)
-        mesh = capudf_marching_cubes(field, lo, hi, cfg.resolution, cfg.cell_threshold, cfg.batch, progress)
-        return mesh if surface is None else trim_to_support(mesh, surface, cfg.far)
+        return capudf_marching_cubes(field, lo, hi, cfg.resolution, cfg.cell_threshold, cfg.batch, progress,
+                                     surface=surface, far=cfg.far)
     if cfg.mode == "sdf_mc":
         return sdf_marching_cubes(field, cfg.resolution, tuple(cfg.domain), cfg.batch, progress)
     if cfg.mode == "udf2sdf":

@@ -31,6 +31,7 @@ from ..errors import InputError
 from ..fields.base import Field, normalize
 from ..geometry.neighbors import kd_tree
 from ..progress import QUIET, Progress
+from .trim import trim_to_support
 
 # ---------------------------------------------------------------------------------------------
 # Table generation. Corner k of a cell has offset (k & 1, (k >> 1) & 1, (k >> 2) & 1) (corner 0 =
@@ -244,14 +245,18 @@ def _per_cell_pseudo_sign(field: Field, lo: np.ndarray, hi: np.ndarray, resoluti
 
 def capudf_marching_cubes(field: Field, lo: np.ndarray, hi: np.ndarray, resolution: int = 256,
                           threshold: float = 0.005, batch: int = 1_000_000,
-                          progress: Progress = QUIET) -> trimesh.Trimesh | None:
+                          progress: Progress = QUIET, surface: np.ndarray | None = None,
+                          far: float = -1.0) -> trimesh.Trimesh | None:
     """CAP-UDF's extraction (§3.5): per-cell pseudo-sign and per-cell marching cubes on a
-    ``resolution`` points-per-axis grid over the box ``[lo, hi]`` (unit space, may be anisotropic).
-    Returns a triangle soup (vertices not shared between cells, orientation per cell)."""
+    ``resolution`` points-per-axis grid over the box ``[lo, hi]`` (unit space, may be anisotropic),
+    then (``far`` > 0, step 6) without the faces whose mean vertex distance to the ``surface`` points
+    (N, 3) is ``far`` or more. Returns a triangle soup (vertices not shared between cells,
+    orientation per cell)."""
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     values, origin = _per_cell_pseudo_sign(field, lo, hi, resolution, threshold, batch, progress)
     v, f = march_cells(values, origin)
-    return _mesh(_to_unit(v, lo, hi, resolution), f)
+    mesh = _mesh(_to_unit(v, lo, hi, resolution), f)
+    return mesh if surface is None else trim_to_support(mesh, surface, far)
 
 
 UDF2SDF_MODES = ("normal-sign", "eps-shell", "local-flip")

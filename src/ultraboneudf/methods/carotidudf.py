@@ -73,14 +73,13 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
         progress: Progress = QUIET, planes: LocalPlanes | None = None,
         checkpoint: Checkpoint | None = None) -> Fitted:
     """Train the pull-loss UDF on a unit-space cloud (``planes``: the pipeline's local planes, for
-    the ``surface`` distance target of the warm start); returns the field, the surface rows and
-    (when the extractor needs them) their oriented normals."""
+    the ``surface`` distance target of the warm start); returns the field, the surface rows and their
+    oriented normals: the hints the ``udf2sdf`` extractor's ``normal-sign`` conversion needs, given
+    whatever extractor the configuration names, so that the fit never depends on the extraction."""
     t0 = time.perf_counter()
     data = prepare(points, cfg, device, seed, progress, planes=planes)
     surface = data.surface.detach().double().cpu().numpy()
-    normals = None
-    if cfg.extract.mode == "udf2sdf" and cfg.extract.udf2sdf == "normal-sign":
-        normals = ultraboneudf_normals(surface, points)
+    normals = ultraboneudf_normals(surface, points)
     prep_s = time.perf_counter() - t0
     net = build_network(cfg, seed, device)
     result = train(net, data, cfg.loss, cfg.train, seed, progress, checkpoint=checkpoint)
