@@ -159,6 +159,23 @@ def test_trained_field_can_be_extracted_again(small_run):
     assert float(u.abs().median()) < 2 / 2**7, float(u.abs().median())
 
 
+def test_fit_then_extract_is_reconstruct(small_run):
+    """``fit`` is the first half of ``reconstruct``: the same input, preset and seed give the same
+    field, its extraction is the same mesh, and the fitted surface extracts again with other settings
+    (coarser leaves: fewer faces) without training again."""
+    import torch
+
+    surface = ultraboneudf.fit(patch_points(), preset="fast", device="cpu", seed=3, **SMALL)
+    assert surface.method == "ultraboneudf" and surface.config == small_run.config
+    x = torch.rand(1000, 3) - 0.5
+    torch.testing.assert_close(surface.field.value(x), small_run.field.value(x), rtol=0, atol=0)
+    mesh = surface.extract()
+    np.testing.assert_array_equal(mesh.faces, small_run.mesh.faces)
+    np.testing.assert_allclose(mesh.vertices, small_run.mesh.vertices, atol=1e-9)
+    coarse = small_run.surface.extract(max_depth=5)
+    assert 0 < len(coarse.faces) < len(small_run.mesh.faces) / 2
+
+
 def test_support_trim_keeps_only_faces_near_the_data(small_run):
     """``extract.trim_mm`` (3 mm in ``fast``) drops exactly the faces whose mean vertex distance to
     the voxelised input is ≥ 3 mm: every kept face is closer, the untrimmed extraction has the

@@ -3,7 +3,7 @@
 >>> import ultraboneudf
 >>> points = ultraboneudf.load_points("scan.xyz")                  # (N, 3) mm
 >>> rec = ultraboneudf.reconstruct(points)                        # doctest: +SKIP
->>> rec.save("bone.ply")                                         # mesh + bone.json sidecar
+>>> rec.save("bone.ply")                                         # mesh + bone.ply.json sidecar
 
 Section numbers (``§1.6``) in docstrings refer to ``docs/ALGORITHMS.md``, the specification.
 
@@ -22,6 +22,7 @@ _WHERE = {
     "EvalResult": "evaluation", "evaluate": "evaluation",
     "load_mesh": "io", "load_points": "io", "save_mesh": "io",
     "Reconstruction": "pipeline", "reconstruct": "pipeline", "reconstruct_many": "pipeline",
+    "FittedSurface": "pipeline", "fit": "pipeline",
 }
 
 __all__ = ["__version__", *_WHERE]

@@ -53,7 +53,8 @@ class Reconstruction:
     counts: dict[str, int]
     quality: dict[str, float]
     data_fit: dict[str, float]
-    """The mesh against its own input (:func:`~ultraboneudf.evaluation.data_fit.data_fit`, ``extract.fit_mm``); empty when off."""
+    """The mesh against its own input (:func:`~ultraboneudf.evaluation.data_fit.data_fit`,
+    ``extract.fit_mm``); empty when off."""
     device: str
     seed: int
     normalizer: Normalizer
@@ -61,15 +62,20 @@ class Reconstruction:
     input: dict[str, Any] = field(default_factory=dict)
     method_info: dict[str, Any] = field(default_factory=dict)
     """Choices the method resolved at run time (e.g. ``poisson_orientation``: ``tangent``/``probe``)."""
-    field: Field | None = None
-    """The trained field in unit space (``None`` for methods that give a mesh directly);
-    :meth:`extract` extracts it again with other settings without retraining."""
-    support: np.ndarray | DataSurface | None = dataclasses.field(default=None, repr=False)
-    """What the support trim (``extract.trim_mm``) measures distances to, in unit space: the
-    pre-processed cloud (M, 3), or with ``data.bridge`` the surface bridged across its gaps."""
-    extract_inputs: dict[str, np.ndarray | None] = dataclasses.field(default_factory=dict, repr=False)
-    """The method's ``surface`` and ``normals`` (unit space) that the grid extractors use."""
+    surface: "FittedSurface | None" = dataclasses.field(default=None, repr=False)
+    """What :func:`fit` gave, which :meth:`extract` extracts again (``None`` for a record read back)."""
     version: str = __version__
+
+    @property
+    def field(self) -> Field | None:
+        """The trained field in unit space (``None`` for methods that give a mesh directly);
+        :meth:`extract` extracts it again with other settings without retraining."""
+        return None if self.surface is None else self.surface.field
+
+    @property
+    def support(self) -> np.ndarray | DataSurface | None:
+        """What the support trim (``extract.trim_mm``) measures distances to, in unit space."""
+        return None if self.surface is None else self.surface.support
 
     def extract(self, **settings: Any) -> trimesh.Trimesh | None:
         """The trained field extracted again, in mm, with ``settings`` replacing fields of
@@ -77,10 +83,7 @@ class Reconstruction:
         applies as in :func:`reconstruct`. ``None`` when no surface is found."""
         if self.field is None:
             raise RuntimeError(f"method {self.method!r} gives a mesh directly; there is no field to extract")
-        cfg = resolve_leaf_size(dataclasses.replace(self.config.extract, **settings), self.normalizer)
-        unit_mesh = extract_mesh(self.field, cfg, **self.extract_inputs)
-        mesh, _ = _trim_and_map(unit_mesh, self.support, self.normalizer, cfg.trim_mm)
-        return mesh
+        return self.surface.extract(**settings)
 
     def sidecar(self) -> dict[str, Any]:
         """The JSON sidecar (DESIGN.md): everything needed to trace the mesh to its configuration."""
@@ -181,7 +184,24 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
         and, with ``checkpoint.resume``, continue a killed run from it (same result as an
         uninterrupted run); for the methods that train with the shared loop (not FUNSR or Poisson).
     """
-    t_start = time.perf_counter()
+    progress = progress or Progress(quiet=quiet)
+    surface = fit(points_mm, preset, device, seed, method, config=config, assignments=assignments,
+                  progress=progress, source=source, probe_positions=probe_positions, checkpoint=checkpoint,
+                  **overrides)
+    rec = _finish(surface, progress)
+    _warn_fit(rec, source)
+    return rec
+
+
+def fit(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torch.device = "auto",
+        seed: int = 42, method: str = "ultraboneudf", *, config: Config | None = None,
+        assignments: list[str] | tuple[str, ...] = (), progress: Progress | None = None,
+        quiet: bool = True, source: str = "points", probe_positions: Any = None,
+        checkpoint: Checkpoint | None = None, **overrides: Any) -> "FittedSurface":
+    """The first half of :func:`reconstruct` (same arguments): pre-process, normalise and fit the
+    method, without extracting a mesh. :meth:`FittedSurface.extract` then gives the surface in mm,
+    as often as wanted and with any extraction settings."""
+    started = time.perf_counter()
     progress = progress or Progress(quiet=quiet)
     cfg, entry = configure(preset, method, config, overrides, assignments)
     if checkpoint is not None and not entry.takes_checkpoint:
@@ -198,11 +218,10 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
     if checkpoint is not None:
         extra["checkpoint"] = checkpoint
     fitted = entry.fit(unit.points, cfg, dev, seed, progress, **extra)
-    rec = _finish(fitted, unit, cfg, dev, progress, method, preset if config is None else "custom", seed,
-                  t_start)
-    rec.input = input_record(points, source)
-    _warn_fit(rec, source)
-    return rec
+    return FittedSurface(method=method, preset=preset if config is None else "custom", config=cfg, device=dev,
+                         seed=seed, fitted=fitted, unit=unit,
+                         support=_support(unit.points, unit.planes, cfg.data.bridge),
+                         input=input_record(points, source), started=started)
 
 
 def input_record(points: np.ndarray, source: str) -> dict[str, Any]:
@@ -245,10 +264,11 @@ def reconstruct_many(clouds_mm: Sequence[Any], preset: str = DEFAULT_PRESET, dev
         units.append(_to_unit(cloud, None, cfg, seed, name))
         records.append(input_record(cloud, name))
     fitted = ubu.fit_many([u.points for u in units], cfg, dev, seed, progress, [u.planes for u in units])
-    out = [_finish(f, unit, cfg, dev, progress, "ultraboneudf", preset, seed, t_start)
-           for f, unit in zip(fitted, units)]
-    for rec, name, record in zip(out, names, records):
-        rec.input = record
+    out = [_finish(FittedSurface(method="ultraboneudf", preset=preset, config=cfg, device=dev, seed=seed, fitted=f,
+                                 unit=unit, support=_support(unit.points, unit.planes, cfg.data.bridge),
+                                 input=record, started=t_start), progress)
+           for f, unit, record in zip(fitted, units, records)]
+    for rec, name in zip(out, names):
         rec.timings["total_s"] = time.perf_counter() - t_start   # the batch's wall time, shared
         _warn_fit(rec, name)
     return out
@@ -349,23 +369,65 @@ def _local_plane_stage(points: np.ndarray, probe: np.ndarray | None, d: DataConf
     return points, probe, planes, dropped
 
 
-def _finish(fitted: Fitted, unit: _UnitCloud, cfg: Config, dev: torch.device, progress: Progress,
-            method: str, preset: str, seed: int, t_start: float) -> Reconstruction:
+@dataclass
+class FittedSurface:
+    """A method fitted to one cloud, before extraction (:func:`fit`): the method's field or mesh in
+    unit space (``fitted``), the one map back to mm (``unit.normalizer``), what the support trim
+    measures to (``support``) and the method's hints for the grid extractors (``fitted.surface``,
+    ``fitted.normals``)."""
+
+    method: str
+    preset: str
+    config: Config
+    device: torch.device
+    seed: int
+    fitted: Fitted
+    unit: "_UnitCloud" = dataclasses.field(repr=False)
+    support: np.ndarray | DataSurface = dataclasses.field(repr=False)
+    input: dict[str, Any] = dataclasses.field(default_factory=dict)
+    """The sidecar's ``input`` (:func:`input_record`)."""
+    started: float = dataclasses.field(default_factory=time.perf_counter, repr=False)
+
+    @property
+    def field(self) -> Field | None:
+        """The fitted field in unit space; ``None`` for methods that give a mesh directly."""
+        return self.fitted.field
+
+    @property
+    def normalizer(self) -> Normalizer:
+        """The map between the input's millimetres and the unit space of the field."""
+        return self.unit.normalizer
+
+    def extract(self, progress: Progress | None = None, **settings: Any) -> trimesh.Trimesh | None:
+        """The surface in mm (input frame): the field extracted with ``config.extract``, ``settings``
+        replacing its fields (e.g. ``mode="faithful", max_depth=9, trim_mm=0``), or the method's own
+        mesh; then the support trim. ``None`` when no surface is found."""
+        cfg = dataclasses.replace(self.config.extract, **settings)
+        return self._extract(cfg, progress or Progress(quiet=True))[0]
+
+    def _extract(self, cfg: ExtractConfig, progress: Progress
+                 ) -> tuple[trimesh.Trimesh | None, int, ExtractConfig]:
+        """The mesh in mm, the faces the support trim removed and the extraction settings used."""
+        cfg = resolve_leaf_size(cfg, self.normalizer)
+        if self.fitted.mesh is not None:
+            unit_mesh = self.fitted.mesh
+        elif self.fitted.field is not None:
+            unit_mesh = extract_mesh(self.fitted.field, cfg, progress, surface=self.fitted.surface,
+                                     normals=self.fitted.normals)
+        else:
+            unit_mesh = None
+        mesh, trimmed = _trim_and_map(unit_mesh, self.support, self.normalizer, cfg.trim_mm)
+        return mesh, trimmed, cfg
+
+
+def _finish(surface: FittedSurface, progress: Progress) -> Reconstruction:
     """Extraction (unless the method gave a mesh), the map back to mm, timings, counts, quality."""
+    fitted, unit, cfg, dev = surface.fitted, surface.unit, surface.config, surface.device
     t1 = time.perf_counter()
-    extract_cfg = resolve_leaf_size(cfg.extract, unit.normalizer)
-    if fitted.mesh is not None:
-        unit_mesh = fitted.mesh
-    elif fitted.field is not None:
-        unit_mesh = extract_mesh(fitted.field, extract_cfg, progress, surface=fitted.surface,
-                                 normals=fitted.normals)
-    else:
-        unit_mesh = None
+    mesh, trimmed, extract_cfg = surface._extract(cfg.extract, progress)
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
     extract_s = time.perf_counter() - t1
-    support = _support(unit.points, unit.planes, cfg.data.bridge)
-    mesh, trimmed = _trim_and_map(unit_mesh, support, unit.normalizer, cfg.extract.trim_mm)
     t2 = time.perf_counter()
     fit = (data_fit(mesh, unit.normalizer.inverse(unit.points), cfg.extract.fit_mm)
            if mesh is not None and cfg.extract.fit_mm > 0 else {})
@@ -381,18 +443,17 @@ def _finish(fitted: Fitted, unit: _UnitCloud, cfg: Config, dev: torch.device, pr
         # the method's own pre-processing steps (e.g. subset_s, sigma_s, static_nn_s)
         **{k: v for k, v in fitted.timings.items() if k not in ("preprocess_s", "train_s")},
     }
-    timings["total_s"] = time.perf_counter() - t_start
+    timings["total_s"] = time.perf_counter() - surface.started
     counts = {"input_points": unit.input_points, "voxelized_points": len(unit.points) + unit.outliers,
               "voxel_size_mm": unit.voxel_mm,
               "outliers_removed": unit.outliers, "extract_depth": extract_cfg.max_depth, **fitted.counts,
               "vertices": 0 if mesh is None else len(mesh.vertices),
               "faces": 0 if mesh is None else len(mesh.faces), "trimmed_faces": trimmed}
     quality = mesh_quality(mesh) if mesh is not None else {}
-    return Reconstruction(mesh=mesh, method=method, preset=preset, config=cfg, timings=timings,
-                          counts=counts, quality=quality, data_fit=fit, device=str(dev), seed=seed,
+    return Reconstruction(mesh=mesh, method=surface.method, preset=surface.preset, config=cfg, timings=timings,
+                          counts=counts, quality=quality, data_fit=fit, device=str(dev), seed=surface.seed,
                           normalizer=unit.normalizer, history=fitted.history, method_info=fitted.info,
-                          field=fitted.field, support=support,
-                          extract_inputs={"surface": fitted.surface, "normals": fitted.normals})
+                          input=dict(surface.input), surface=surface)
 
 
 def resolve_leaf_size(cfg: ExtractConfig, normalizer: Normalizer) -> ExtractConfig:
