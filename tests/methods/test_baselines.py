@@ -89,6 +89,12 @@ def test_poisson_on_a_sphere_and_on_the_sheet():
     assert rec.mesh is not None and rec.counts["parameters"] == 0
     # Poisson closes the open sheet (§7.4): the mesh wraps it, so it reaches the input
     assert near_input_fraction(rec, 3.0) > 0.2
+    # a method that gives a mesh directly: fit + extract is that mesh, trimmed as reconstruct trims it
+    surface = ultraboneudf.fit(patch_points(), preset="official", device="cpu", seed=1, method="poisson",
+                               **{**TINY, "poisson.octree_depth": 6, "poisson.solver_threads": 1})
+    assert surface.field is None
+    np.testing.assert_array_equal(surface.extract().faces, rec.mesh.faces)
+    assert len(surface.extract(trim_mm=3.0).faces) < len(rec.mesh.faces)   # the closed body's far side
 
 
 def test_poisson_backend_errors_are_actionable():
