@@ -9,7 +9,7 @@ Modes:
     thinned       an earlier option, kept here for comparison only: faithful vertices,
                   only leaves whose vertex lies in their own cell, faithful quads and rules,
                   coincident vertices merged, over-shared edges resolved by face-centre UDF
-    clean-mass    ``mode="clean"`` with mass-point vertices (``clean_vertex="mass"``)
+    clean-mass    ``mode="clean"`` with mass-point vertices (``clean.vertex="mass"``)
     clean         ``mode="clean"`` as shipped (UltraBoneUDF thresholds)
 
     .venv/bin/python benchmarks/bench_extraction.py                 # depths 7 and 8
@@ -24,7 +24,7 @@ import time
 
 import torch
 
-from ultraboneudf.config import DMU_DEFAULTS, ExtractConfig
+from ultraboneudf.config import DMU_DEFAULTS, CleanConfig, ExtractConfig
 from ultraboneudf.extraction import extract_mesh, mesh_quality
 from ultraboneudf.extraction.dualmesh import edge_crossing as clean
 from ultraboneudf.extraction import dualmesh as dm
@@ -42,7 +42,7 @@ MODES = {
     "faithful-dmu": lambda d: ExtractConfig(**{**DMU_DEFAULTS, "max_depth": d}),
     "faithful-ubu": lambda d: ExtractConfig(max_depth=d),
     "thinned": lambda d: ExtractConfig(max_depth=d),
-    "clean-mass": lambda d: ExtractConfig(max_depth=d, mode="clean", clean_vertex="mass"),
+    "clean-mass": lambda d: ExtractConfig(max_depth=d, mode="clean"),
     "clean": lambda d: ExtractConfig(max_depth=d, mode="clean"),
 }
 
@@ -73,7 +73,8 @@ def run(field_name: str, mode: str, depth: int, device: str) -> dict:
     if device == "cuda":
         torch.cuda.synchronize()
     t0 = time.perf_counter()
-    mesh = thinned(field, cfg) if mode == "thinned" else extract_mesh(field, cfg)
+    options = CleanConfig(vertex="mass") if mode == "clean-mass" else None
+    mesh = thinned(field, cfg) if mode == "thinned" else extract_mesh(field, cfg, clean=options)
     if device == "cuda":
         torch.cuda.synchronize()
     seconds = time.perf_counter() - t0

@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     cli = [py, "-m", "ultraboneudf.cli", "bench"]
     _run([*cli, "dataset", "openbone", str(bones), "--out", str(args.out / "data"), "--quiet",
           *(["--samples", "3000"] if args.quick else [])])
-    quick_e1 = (["--set", "train.iters=20", "--set", "extract.max_depth=6", "--set", "extract.resolution=32",
+    quick_e1 = (["--set", "train.iters=20", "--set", "extract.max_depth=6", "--set", "grid.resolution=32",
                  "--samples", "5000"] if args.quick else [])
     _run([*cli, "run", "E1", "--dataset", str(args.out / "data" / "manifest.csv"), "--out", str(args.out / "e1"),
           "--device", device, "--quiet", *quick_e1])

@@ -256,7 +256,10 @@ class TrainConfig(_Section):
 
 @dataclass
 class ExtractConfig(_Section):
-    """DualMesh-UDF (§2); thresholds in unit space. Defaults: the UltraBoneUDF call of §1.8."""
+    """The extractor (``mode``) and, after it, the support trim and the data-fit self-check; the
+    DualMesh-UDF octree and vertex thresholds (§2, unit space), which the ``faithful`` and ``clean``
+    extractors share. Defaults: the UltraBoneUDF call of §1.8. The edge-crossing extractor's own
+    options are :class:`CleanConfig`, the grid extractors' :class:`GridConfig`."""
 
     SECTION: ClassVar[str] = "extract"
 
@@ -301,21 +304,6 @@ class ExtractConfig(_Section):
     the grid extractors (``extraction/marching.py``): ``capudf_mc`` (CAP-UDF pseudo-sign per-cell
     marching cubes, §3.5), ``sdf_mc`` (marching cubes of a signed field, §4.5), ``udf2sdf``
     (CarotidUDF, §5.4)."""
-    resolution: int = 256
-    """Grid extractors: grid points per axis."""
-    grid_box: Literal["domain", "surface"] = "domain"
-    """Grid extractors: ``domain`` (the cube ``domain``³, FUNSR/CarotidUDF) or ``surface`` (bounding box
-    of the surface points enlarged by ``box_margin`` per side, CAP-UDF)."""
-    box_margin: float = 0.05
-    """``grid_box = surface``: enlargement per side (unit space)."""
-    cell_threshold: float = 0.005
-    """``capudf_mc`` / ``local-flip``: skip cells whose smallest corner value exceeds this."""
-    udf2sdf: Literal["normal-sign", "eps-shell", "local-flip"] = "normal-sign"
-    """``udf2sdf`` conversion: ``normal-sign`` (default), ``eps-shell`` or ``local-flip`` (§5.4)."""
-    udf2sdf_project: bool = False
-    """``eps-shell``: project the vertices onto the zero set with ``v ← v − u·ĝ``."""
-    far: float = -1.0
-    """``capudf_mc``: drop faces whose mean vertex distance to the surface points is ≥ this; ≤ 0 = off."""
     trim_mm: float = 0.0
     """Support trim, after any extractor and for every method: drop the faces whose mean vertex
     distance to the nearest pre-processed input point (the voxelised cloud) is ≥ this many mm;
@@ -331,18 +319,52 @@ class ExtractConfig(_Section):
     """Data-fit self-check (sidecar ``data_fit``, a warning from the CLI): the fraction of input
     points farther than this many mm from the mesh, and of mesh area this far from every input point;
     0 = off. It measures, never changes, the mesh."""
-    clean_crossing: float = 0.5
-    """Clean mode: a leaf-lattice edge whose end gradients oppose counts as crossed only if the UDF
-    at the estimated crossing is below ``clean_crossing × leaf edge + margin``."""
-    clean_vertex: Literal["qef", "mass"] = "qef"
-    """Clean mode vertex: ``qef`` (the §2.6 vertex of the leaf if within ``clean_qef_window`` cells
+
+
+@dataclass
+class CleanConfig(_Section):
+    """The edge-crossing extractor (``extract.mode=clean``): one layer of surface, every edge shared by
+    at most two faces, on the DualMesh-UDF octree band (``extract.*``)."""
+
+    SECTION: ClassVar[str] = "clean"
+
+    crossing: float = 0.5
+    """A leaf-lattice edge whose end gradients oppose counts as crossed only if the UDF
+    at the estimated crossing is below ``crossing × leaf edge + extract.margin``."""
+    vertex: Literal["qef", "mass"] = "qef"
+    """The vertex: ``qef`` (the §2.6 vertex of the leaf if within ``qef_window`` cells
     of it, else the mean of the leaf's crossing points) or ``mass`` (always that mean)."""
-    clean_qef_window: float = 0.5
-    """Clean mode: how far (in leaf cells) outside its leaf a QEF vertex may lie and still be used."""
-    clean_project_steps: int = 2
-    """Clean mode: projection steps x ← x − α·u·∇u/|∇u| moving vertices onto the zero set; 0 = none."""
-    clean_merge: float = 1e-6
-    """Clean mode: vertices that round to the same point of a grid of this many leaf cells merge."""
+    qef_window: float = 0.5
+    """How far (in leaf cells) outside its leaf a QEF vertex may lie and still be used."""
+    project_steps: int = 2
+    """Projection steps x ← x − α·u·∇u/|∇u| moving vertices onto the zero set; 0 = none."""
+    merge: float = 1e-6
+    """Vertices that round to the same point of a grid of this many leaf cells merge."""
+
+
+@dataclass
+class GridConfig(_Section):
+    """The grid extractors of the baselines (``extract.mode`` ``capudf_mc``, ``sdf_mc``, ``udf2sdf``;
+    ``extraction/marching.py``); lengths in unit space."""
+
+    SECTION: ClassVar[str] = "grid"
+
+    resolution: int = 256
+    """Grid points per axis."""
+    box: Literal["domain", "surface"] = "domain"
+    """``domain`` (the cube ``extract.domain``³, FUNSR/CarotidUDF) or ``surface`` (bounding box of the
+    surface points enlarged by ``box_margin`` per side, CAP-UDF)."""
+    box_margin: float = 0.05
+    """``box = surface``: enlargement per side (unit space)."""
+    cell_threshold: float = 0.005
+    """``capudf_mc`` / ``local-flip``: skip cells whose smallest corner value exceeds this."""
+    udf2sdf: Literal["normal-sign", "eps-shell", "local-flip"] = "normal-sign"
+    """``extract.mode=udf2sdf`` conversion: ``normal-sign`` (default), ``eps-shell`` or
+    ``local-flip`` (§5.4)."""
+    udf2sdf_project: bool = False
+    """``eps-shell``: project the vertices onto the zero set with ``v ← v − u·ĝ``."""
+    far: float = -1.0
+    """``capudf_mc``: drop faces whose mean vertex distance to the surface points is ≥ this; ≤ 0 = off."""
 
 
 @dataclass
@@ -418,6 +440,8 @@ class Config:
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     extract: ExtractConfig = field(default_factory=ExtractConfig)
+    clean: CleanConfig = field(default_factory=CleanConfig)
+    grid: GridConfig = field(default_factory=GridConfig)
     poisson: PoissonConfig = field(default_factory=PoissonConfig)
     capudf: CapudfConfig = field(default_factory=CapudfConfig)
     funsr: FunsrConfig = field(default_factory=FunsrConfig)
@@ -459,7 +483,7 @@ def _paper() -> Config:
     cfg.extract.band_start_depth = 4
     cfg.extract.mode = "clean"  # one-layer, edge-manifold mesh; "faithful" reproduces DMU
     cfg.extract.trim_mm = 3.0   # no surface > 3 mm from the data (README, "Support trim")
-    cfg.extract.clean_project_steps = 0  # see _fast
+    cfg.clean.project_steps = 0  # see _fast
     return cfg
 
 
@@ -503,7 +527,7 @@ def _fast() -> Config:
     cfg.extract.trim_mm = 3.0
     # Trained fields' minima are not their exact zero sets: moving the QEF vertices onto them cost
     # accuracy on every field measured (femur 0.42 → 0.38 mm, tibia 0.43 → 0.40, phantom 0.128 → 0.121).
-    cfg.extract.clean_project_steps = 0
+    cfg.clean.project_steps = 0
     return cfg
 
 

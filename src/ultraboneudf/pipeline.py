@@ -22,7 +22,8 @@ import trimesh
 
 from ._version import __version__
 from .checkpoints import Checkpoint
-from .config import DEFAULT_PRESET, Config, DataConfig, ExtractConfig, apply_overrides, preset as make_preset, validate
+from .config import (DEFAULT_PRESET, CleanConfig, Config, DataConfig, ExtractConfig, GridConfig, apply_overrides,
+                     preset as make_preset, validate)
 from .devices import resolve_device
 from .errors import FitWarning, InputError
 from .evaluation.data_fit import data_fit
@@ -78,9 +79,10 @@ class Reconstruction:
         return None if self.surface is None else self.surface.support
 
     def extract(self, **settings: Any) -> trimesh.Trimesh | None:
-        """The trained field extracted again, in mm, with ``settings`` replacing fields of
-        ``config.extract`` (e.g. ``mode="faithful", max_depth=9, trim_mm=0``); the support trim
-        applies as in :func:`reconstruct`. ``None`` when no surface is found."""
+        """The trained field extracted again, in mm, with ``settings`` replacing fields of the
+        configuration's ``extract``, ``clean`` or ``grid`` section (e.g. ``mode="faithful",
+        max_depth=9, trim_mm=0``); the support trim applies as in :func:`reconstruct`. ``None`` when
+        no surface is found."""
         if self.field is None:
             raise RuntimeError(f"method {self.method!r} gives a mesh directly; there is no field to extract")
         return self.surface.extract(**settings)
@@ -399,13 +401,14 @@ class FittedSurface:
         return self.unit.normalizer
 
     def extract(self, progress: Progress | None = None, **settings: Any) -> trimesh.Trimesh | None:
-        """The surface in mm (input frame): the field extracted with ``config.extract``, ``settings``
-        replacing its fields (e.g. ``mode="faithful", max_depth=9, trim_mm=0``), or the method's own
-        mesh; then the support trim. ``None`` when no surface is found."""
-        cfg = dataclasses.replace(self.config.extract, **settings)
-        return self._extract(cfg, progress or Progress(quiet=True))[0]
+        """The surface in mm (input frame): the field extracted as the configuration says, with
+        ``settings`` replacing fields of its ``extract``, ``clean`` or ``grid`` section (each name
+        belongs to one: e.g. ``mode="faithful", max_depth=9, trim_mm=0``, or ``mode="capudf_mc",
+        resolution=128``), or the method's own mesh; then the support trim. ``None`` when no surface
+        is found."""
+        return self._extract(*_with_settings(self.config, settings), progress or Progress(quiet=True))[0]
 
-    def _extract(self, cfg: ExtractConfig, progress: Progress
+    def _extract(self, cfg: ExtractConfig, clean: CleanConfig, grid: GridConfig, progress: Progress
                  ) -> tuple[trimesh.Trimesh | None, int, ExtractConfig]:
         """The mesh in mm, the faces the support trim removed and the extraction settings used."""
         cfg = resolve_leaf_size(cfg, self.normalizer)
@@ -413,18 +416,31 @@ class FittedSurface:
             unit_mesh = self.fitted.mesh
         elif self.fitted.field is not None:
             unit_mesh = extract_mesh(self.fitted.field, cfg, progress, surface=self.fitted.surface,
-                                     normals=self.fitted.normals)
+                                     normals=self.fitted.normals, clean=clean, grid=grid)
         else:
             unit_mesh = None
         mesh, trimmed = _trim_and_map(unit_mesh, self.support, self.normalizer, cfg.trim_mm)
         return mesh, trimmed, cfg
 
 
+def _with_settings(config: Config, settings: dict[str, Any]) -> tuple[ExtractConfig, CleanConfig, GridConfig]:
+    """The ``extract``, ``clean`` and ``grid`` sections of ``config`` with ``settings`` replacing the
+    fields of whichever section holds each name (:class:`TypeError` for a name none holds)."""
+    left = dict(settings)
+    out = []
+    for section in (config.extract, config.clean, config.grid):
+        names = {f.name for f in dataclasses.fields(section)}
+        out.append(dataclasses.replace(section, **{k: left.pop(k) for k in list(left) if k in names}))
+    if left:
+        raise TypeError(f"unknown extraction setting(s): {', '.join(left)}")
+    return out[0], out[1], out[2]
+
+
 def _finish(surface: FittedSurface, progress: Progress) -> Reconstruction:
     """Extraction (unless the method gave a mesh), the map back to mm, timings, counts, quality."""
     fitted, unit, cfg, dev = surface.fitted, surface.unit, surface.config, surface.device
     t1 = time.perf_counter()
-    mesh, trimmed, extract_cfg = surface._extract(cfg.extract, progress)
+    mesh, trimmed, extract_cfg = surface._extract(cfg.extract, cfg.clean, cfg.grid, progress)
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
     extract_s = time.perf_counter() - t1

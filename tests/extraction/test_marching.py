@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from ultraboneudf.config import ExtractConfig
+from ultraboneudf.config import ExtractConfig, GridConfig
 from ultraboneudf.errors import InputError
 from ultraboneudf.extraction import extract_mesh
 from ultraboneudf.extraction.marching import (EDGES, TRIANGLES, capudf_marching_cubes, marching_cubes_volume,
@@ -122,12 +122,12 @@ def test_udf2sdf_local_flip_is_capudf_on_the_cube():
 
 @pytest.mark.parametrize("mode", ["capudf_mc", "sdf_mc", "udf2sdf"])
 def test_extract_mesh_dispatches_grid_modes(mode):
-    cfg = ExtractConfig(mode=mode, resolution=32, udf2sdf="eps-shell", cell_threshold=0.05)
+    grid = GridConfig(resolution=32, udf2sdf="eps-shell", cell_threshold=0.05)
     p, n = _sphere_points(500)
     if mode == "capudf_mc":
-        cfg.grid_box = "surface"
+        grid.box = "surface"
     field = SphereUDF(radius=0.3, signed=(mode == "sdf_mc"))
-    mesh = extract_mesh(field, cfg, surface=p, normals=n)
+    mesh = extract_mesh(field, ExtractConfig(mode=mode), surface=p, normals=n, grid=grid)
     assert mesh is not None and len(mesh.faces) > 100
     r = np.linalg.norm(mesh.vertices, axis=1)
     tol = 2.0 / 31 * (1.1 if mode == "udf2sdf" else 0.1)  # eps-shell sits one step off the surface
@@ -135,13 +135,14 @@ def test_extract_mesh_dispatches_grid_modes(mode):
 
 
 def test_extract_mesh_far_trimming_and_surface_box_need_surface():
-    cfg = ExtractConfig(mode="capudf_mc", resolution=32, grid_box="surface", cell_threshold=0.05)
+    cfg = ExtractConfig(mode="capudf_mc")
+    grid = GridConfig(resolution=32, box="surface", cell_threshold=0.05)
     with pytest.raises(InputError, match="surface"):
-        extract_mesh(SphereUDF(radius=0.3), cfg)
+        extract_mesh(SphereUDF(radius=0.3), cfg, grid=grid)
     p, _ = _sphere_points(500)
     cap = p[p[:, 2] > 0.1]  # only the top cap is data: far trimming removes the rest
-    cfg.grid_box, cfg.far = "domain", 0.02
-    mesh = extract_mesh(SphereUDF(radius=0.3), cfg, surface=cap)
+    grid.box, grid.far = "domain", 0.02
+    mesh = extract_mesh(SphereUDF(radius=0.3), cfg, surface=cap, grid=grid)
     assert mesh.vertices[:, 2].min() > 0.1 - 0.03
 
 

@@ -15,7 +15,7 @@ from ultraboneudf.methods.poisson import resolve_backend, screened_poisson
 RADIUS, LENGTH = 20.0, 40.0
 # five hidden layers so that the skip into layer 4 (CAP-UDF, FUNSR) exists
 TINY = {"train.iters": 100, "train.batch": 300, "train.warmup": 10, "model.hidden": (32, 32, 32, 32, 32),
-        "data.grid_queries": 500, "extract.resolution": 32, "extract.max_depth": 6}
+        "data.grid_queries": 500, "grid.resolution": 32, "extract.max_depth": 6}
 PARAMS = {"no_skip": 5 * 32 + 4 * 32 * 34 + 34, "skip4": 5 * 32 + 3 * 32 * 34 + 29 * 34 + 34}
 HAS_POISSON = any(importlib.util.find_spec(m) is not None for m in ("pymeshlab", "open3d"))
 
@@ -52,7 +52,7 @@ def test_short_run_pull_family(method, term):
     assert "extract_s" in side["timings"]
     if side["config"]["extract"]["mode"] == "udf2sdf":
         # §5.4: the conversion in use is recorded; its sign flips add sheets far from the data
-        assert side["config"]["extract"]["udf2sdf"] == "normal-sign"
+        assert side["config"]["grid"]["udf2sdf"] == "normal-sign"
         assert near_input_fraction(rec, 10.0) > 0.1
     else:
         assert near_input_fraction(rec, 10.0) > 0.3
@@ -60,7 +60,7 @@ def test_short_run_pull_family(method, term):
 
 def test_short_run_capudf_expands_once():
     rec = run("capudf", **{"train.iters": 80, "capudf.expand_at": 50, "capudf.expand_batch": 600, "capudf.expand_candidates": 3000,
-                           "capudf.total_queries": 8_000, "extract.cell_threshold": 0.02})
+                           "capudf.total_queries": 8_000, "grid.cell_threshold": 0.02})
     assert rec.counts["surface_points"] % 60 == 0
     assert rec.counts["expanded_points"] > 0
     assert rec.history["cd"][-1] < rec.history["cd"][0]

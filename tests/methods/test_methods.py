@@ -95,10 +95,10 @@ def test_ablation_switches_through_set():
 def test_method_defaults_follow_the_spec():
     cap, fun, car = configured("capudf"), configured("funsr"), configured("carotidudf")
     assert (cap.train.iters, cap.capudf.expand_at, cap.train.batch, cap.capudf.expand_batch) == (60_000, 40_000, 5_000, 20_000)
-    assert (cap.extract.mode, cap.extract.resolution, cap.extract.grid_box) == ("capudf_mc", 256, "surface")
+    assert (cap.extract.mode, cap.grid.resolution, cap.grid.box) == ("capudf_mc", 256, "surface")
     assert (fun.train.iters, fun.loss.pull_norm, fun.model.abs_output, fun.extract.mode) == (15_000, "unsquared", False, "sdf_mc")
     assert fun.data.voxel_size_mm == 0.0
-    assert (car.train.iters, car.loss.kind, car.loss.lambda_gs, car.extract.udf2sdf) == (30_000, "pull", 0.0, "normal-sign")
+    assert (car.train.iters, car.loss.kind, car.loss.lambda_gs, car.grid.udf2sdf) == (30_000, "pull", 0.0, "normal-sign")
     assert configured("ultraboneudf_pull").extract.mode == preset("official").extract.mode
     assert configured("vanilla_udf").extract.mode == "udf2sdf"
     fast = configured("capudf", "fast")

@@ -285,7 +285,7 @@ def udf_to_sdf_marching_cubes(field: Field, mode: str = "normal-sign", resolutio
             if surface is None or normals is None:
                 raise InputError("udf2sdf 'normal-sign' needs the surface points and their oriented normals; "
                                  "use a method that provides them (carotidudf, vanilla_udf) or "
-                                 "--set extract.udf2sdf=eps-shell")
+                                 "--set grid.udf2sdf=eps-shell")
             u, g = field.value_and_grad(pts, chunk=batch)
             _, idx = kd_tree(surface).query(pts.numpy(), k=1, workers=-1)
             dot = (g.numpy() * normals[idx]).sum(axis=1)

@@ -47,7 +47,7 @@ def configure(cfg: Config, preset: str) -> None:
         cfg.capudf.expand_at = (2 * cfg.train.iters) // 3
         cfg.capudf.expand_batch = 4 * cfg.train.batch
         cfg.capudf.expand_candidates = 200_000
-        cfg.extract.resolution = 128
+        cfg.grid.resolution = 128
     else:
         cfg.train.iters = 60_000
         cfg.train.batch = 5_000
@@ -55,12 +55,12 @@ def configure(cfg: Config, preset: str) -> None:
         cfg.train.warmup = 1_000
         cfg.capudf.expand_at = 40_000
         cfg.capudf.expand_batch = 20_000
-        cfg.extract.resolution = 256
+        cfg.grid.resolution = 256
     cfg.extract.mode = "capudf_mc"
-    cfg.extract.grid_box = "surface"
-    cfg.extract.box_margin = 0.05
-    cfg.extract.cell_threshold = 0.005
-    cfg.extract.far = -1.0
+    cfg.grid.box = "surface"
+    cfg.grid.box_margin = 0.05
+    cfg.grid.cell_threshold = 0.005
+    cfg.grid.far = -1.0
     cfg.extract.batch = 1_000_000
 
 

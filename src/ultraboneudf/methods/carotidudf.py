@@ -43,9 +43,9 @@ def _pull_only(cfg: Config) -> None:
 def _udf2sdf_extraction(cfg: Config, preset: str) -> None:
     """§5.4: ``normal-sign`` marching cubes on 256³ points over [−1, 1]³ (128³ for the short presets ``robust`` and ``fast``)."""
     cfg.extract.mode = "udf2sdf"
-    cfg.extract.udf2sdf = "normal-sign"
-    cfg.extract.resolution = 128 if preset in SHORT_PRESETS else 256
-    cfg.extract.grid_box = "domain"
+    cfg.grid.udf2sdf = "normal-sign"
+    cfg.grid.resolution = 128 if preset in SHORT_PRESETS else 256
+    cfg.grid.box = "domain"
     cfg.extract.domain = (-1.0, 1.0)
     cfg.extract.batch = 1_000_000
 

@@ -74,8 +74,8 @@ def configure(cfg: Config, preset: str) -> None:
         cfg.train.lr = 1e-3
         cfg.train.warmup = 1_000
     cfg.extract.mode = "sdf_mc"
-    cfg.extract.resolution = 128 if preset in SHORT_PRESETS else 256
-    cfg.extract.grid_box = "domain"
+    cfg.grid.resolution = 128 if preset in SHORT_PRESETS else 256
+    cfg.grid.box = "domain"
     cfg.extract.domain = (-1.0, 1.0)
     cfg.extract.batch = 1_000_000
 

@@ -9,7 +9,7 @@ sign change to detect crossings, so here an edge ``(p, q)`` of the leaf lattice 
 
 1. the unit gradients at its ends point against each other, ``ĝ_p·ĝ_q < 0`` (the ends lie on
    opposite sides of the sheet; on one side of a sheet the UDF gradients are nearly parallel), and
-2. the field really vanishes in between: ``u(x*) < clean_crossing·h + μ`` at the estimated
+2. the field really vanishes in between: ``u(x*) < crossing·h + μ`` at the estimated
    crossing ``x* = p + t·(q − p)``, ``t = u_p / (u_p + u_q)``. This rejects the medial set (where
    gradients also oppose) and the continuation of a sheet past its rim, so boundaries appear only
    where the surface is really open.
@@ -25,13 +25,13 @@ faces); those rare edges are resolved afterwards. Cells of a ring that are missi
 (the band of §2.3 thins where the field's minimum exceeds μ) still get a vertex, so the layer
 has no hole there.
 
-Vertices: with ``clean_vertex = "qef"`` the faithful QEF vertex (§2.6) of a band leaf when it lies
-within ``clean_qef_window`` cells of the leaf — it puts the vertices of rim cells on the rim, which
+Vertices: with ``vertex = "qef"`` the faithful QEF vertex (§2.6) of a band leaf when it lies
+within ``qef_window`` cells of the leaf — it puts the vertices of rim cells on the rim, which
 keeps open boundaries and their area right — else the mean of the cell's crossing points; then
-``clean_project_steps`` backtracking projections ``x ← x − α·u·ĝ`` onto the zero set. Where the
+``project_steps`` backtracking projections ``x ← x − α·u·ĝ`` onto the zero set. Where the
 surface leaves the domain, vertices of the cells at the domain face are moved onto that face.
 Quads are split along the diagonal whose midpoint has the smaller UDF. Finally vertices that round
-to the same point of a grid of spacing ``clean_merge·h`` are merged, faces with a repeated vertex,
+to the same point of a grid of spacing ``merge·h`` are merged, faces with a repeated vertex,
 zero area or a repeated vertex set are removed, and an edge still shared by more than two faces
 keeps the two faces whose centroids have the smallest UDF. The faces are then wound consistently
 (closed components with outward normals), which the faithful output is not.
@@ -49,7 +49,7 @@ import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
-from ...config import ExtractConfig
+from ...config import CleanConfig, ExtractConfig
 from ...errors import InputError
 from ...fields.base import Field, normalize
 from ...progress import QUIET, Progress
@@ -107,7 +107,7 @@ def _side_fields(field: Field, cfg: ExtractConfig, samples: LeafSamples, ids: to
     return u, g
 
 
-def crossed_edges(field: Field, cfg: ExtractConfig, samples: LeafSamples, h: float
+def crossed_edges(field: Field, cfg: ExtractConfig, opts: CleanConfig, samples: LeafSamples, h: float
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """Leaf-lattice edges crossed by the zero set (see the module docstring).
 
@@ -126,7 +126,7 @@ def crossed_edges(field: Field, cfg: ExtractConfig, samples: LeafSamples, h: flo
     p, q = samples.points[edges[:, 0]], samples.points[edges[:, 1]]
     x = p + t[:, None] * (q - p)
     u_x = field.value(x, chunk=cfg.batch).to(torch.float64)
-    real = u_x < cfg.clean_crossing * h + cfg.margin
+    real = u_x < opts.crossing * h + cfg.margin
     return edges[real], x[real]
 
 
@@ -199,8 +199,8 @@ def _project(field: Field, cfg: ExtractConfig, x: torch.Tensor, h: float, steps:
     return x
 
 
-def _vertices(field: Field, cfg: ExtractConfig, samples: LeafSamples, ijk: torch.Tensor, lat: Lattice,
-              cells: torch.Tensor, local: torch.Tensor, cross_x: torch.Tensor) -> torch.Tensor:
+def _vertices(field: Field, cfg: ExtractConfig, opts: CleanConfig, samples: LeafSamples, ijk: torch.Tensor,
+              lat: Lattice, cells: torch.Tensor, local: torch.Tensor, cross_x: torch.Tensor) -> torch.Tensor:
     """Positions (N, 3) float64 of the vertex cells ``cells`` (N, 3) (sorted by key).
 
     ``local`` (Q, 4) are the quads as rows of ``cells`` and ``cross_x`` (Q, 3) their crossing
@@ -217,22 +217,22 @@ def _vertices(field: Field, cfg: ExtractConfig, samples: LeafSamples, ijk: torch
     cnt.index_add_(0, flat, torch.ones_like(flat, dtype=torch.float64))
     x = acc / cnt[:, None]
     from_qef = torch.zeros(n, dtype=torch.bool, device=cells.device)
-    if cfg.clean_vertex == "qef":
+    if opts.vertex == "qef":
         leaf, is_leaf = lookup_cells(pack(ijk, lat.cell_bits), cells, lat.depth)
         rows = is_leaf.nonzero().squeeze(1)
         verts = solve_leaves(dataclasses.replace(samples, ids=samples.ids[leaf[rows]]), cells[rows], cfg)
         lo, hi = lat.leaf_boxes(cells[rows])
-        window = cfg.clean_qef_window * h
+        window = opts.qef_window * h
         near = verts.has & ((verts.position > lo - window) & (verts.position < hi + window)).all(1)
         x[rows[near]] = verts.position[near]
         from_qef[rows[near]] = True
-    elif cfg.clean_vertex != "mass":
-        raise InputError(f"unknown clean_vertex {cfg.clean_vertex!r}; choose qef or mass")
+    elif opts.vertex != "mass":
+        raise InputError(f"unknown clean.vertex {opts.vertex!r}; choose qef or mass")
     # A QEF vertex on the open rim stays where the QEF put it (on the rim): projecting it pulls it
     # inward wherever a trained field's rim is rounded (measured on the open femur, `fast` field:
     # clean CD 0.49 → 0.42 mm, area 0.93 → 0.96 of the truth).
     moved = (~(from_qef & _rim_vertices(local, n))).nonzero().squeeze(1)
-    x[moved] = _project(field, cfg, x[moved], h, cfg.clean_project_steps)
+    x[moved] = _project(field, cfg, x[moved], h, opts.project_steps)
     return x
 
 
@@ -246,7 +246,7 @@ def _rim_vertices(quads: torch.Tensor, n: int) -> torch.Tensor:
     return rim
 
 
-def _snap_to_domain(field: Field, cfg: ExtractConfig, x: torch.Tensor, cells: torch.Tensor,
+def _snap_to_domain(field: Field, cfg: ExtractConfig, opts: CleanConfig, x: torch.Tensor, cells: torch.Tensor,
                     face_edges: torch.Tensor, lat: Lattice) -> torch.Tensor:
     """Move the vertices of leaves through whose domain-boundary face the surface leaves the
     domain onto that face, then project them onto the zero set *within* the face.
@@ -275,7 +275,7 @@ def _snap_to_domain(field: Field, cfg: ExtractConfig, x: torch.Tensor, cells: to
             rows = touch.nonzero().squeeze(1)
             y = x[rows].clone()
             y[:, axis] = face_value
-            y = _project(field, cfg, y, h, max(1, cfg.clean_project_steps), fixed_axis=axis)
+            y = _project(field, cfg, y, h, max(1, opts.project_steps), fixed_axis=axis)
             x[rows] = y
     return x
 
@@ -401,16 +401,20 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 # The extractor
 # --------------------------------------------------------------------------------------------
 
-def clean_udf_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET) -> trimesh.Trimesh | None:
-    """Clean extraction (``ExtractConfig.mode == "clean"``): one surface layer, no edge shared by
-    more than two faces, no duplicate or zero-area faces.
+def clean_udf_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET,
+                   opts: CleanConfig | None = None) -> trimesh.Trimesh | None:
+    """Clean extraction (``extract.mode = clean``): one surface layer, no edge shared by more than
+    two faces, no duplicate or zero-area faces; ``opts``: its own options (``clean.*``, the defaults
+    when ``None``).
 
     Uses the faithful octree band (§2.3), leaf samples (§2.4–2.5) and QEF (§2.6) of
-    :mod:`.dualmesh`; see the module docstring for the method. Returns the mesh in the field's
+    :mod:`ultraboneudf.extraction.dualmesh` with ``cfg``'s thresholds; see the module docstring for
+    the method. Returns the mesh in the field's
     coordinates (``process=False``; consistently wound, closed components with outward normals)
     or ``None`` when there is none.
     ``mesh.metadata`` carries counters (``leaves``, ``crossed_edges``, ``quads``,
     ``nonmanifold_faces_removed``)."""
+    opts = CleanConfig() if opts is None else opts
     lat = Lattice.from_config(cfg)
     h = lat.cell_size()
     with progress.stage("UDF clean", total=lat.depth + 1 + 5) as advance:
@@ -419,21 +423,21 @@ def clean_udf_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET)
             return None
         samples = sample_leaves(field, cfg, ijk)
         advance(1)
-        edges, cross_x = crossed_edges(field, cfg, samples, h)
+        edges, cross_x = crossed_edges(field, cfg, opts, samples, h)
         ring, inside = edge_rings(edges, samples, lat)
         advance(1)
         if not bool(inside.any()):
             return None
         keys, local = torch.unique(pack(ring[inside], lat.cell_bits), return_inverse=True)
         cells = unpack(keys, lat.cell_bits)
-        pos = _vertices(field, cfg, samples, ijk, lat, cells, local, cross_x[inside])
+        pos = _vertices(field, cfg, opts, samples, ijk, lat, cells, local, cross_x[inside])
         m = 1 << lat.sub
         crossed = torch.cat([samples.index[edges[:, 0]] // m, edges[:, 2:]], 1)
-        pos = _snap_to_domain(field, cfg, pos, cells, crossed, lat)
+        pos = _snap_to_domain(field, cfg, opts, pos, cells, crossed, lat)
         advance(1)
         faces = _split_quads(field, cfg, pos, local)
         advance(1)
-        rep, faces = merge_vertices(pos, faces, cfg.clean_merge * h)
+        rep, faces = merge_vertices(pos, faces, opts.merge * h)
         pos = pos[rep]
         faces = _drop_bad_faces(pos, faces, h)
         faces, removed = resolve_nonmanifold(field, cfg, pos, faces)
