@@ -101,6 +101,17 @@ def test_unknown_key_exits_2(tmp_path, capsys):
         assert "nope" in capsys.readouterr().err
 
 
+def test_a_key_of_an_earlier_version_names_its_new_place():
+    from ultraboneudf.config import MOVED_KEYS
+
+    cfg = Config()
+    for old, new in MOVED_KEYS.items():
+        section, name = new.split(".")
+        assert hasattr(getattr(cfg, section), name), new          # every new place exists
+        with pytest.raises(InputError, match=f"'{old}' is now '{new}'"):
+            apply_overrides(Config(), assignments=[f"{old}=1"])
+
+
 def test_modes_checked_on_construction_and_before_a_run():
     with pytest.raises(InputError, match="data.subset 'bogus'; choose one of official, fps, all"):
         DataConfig(subset="bogus")

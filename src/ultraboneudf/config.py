@@ -610,8 +610,27 @@ def _sections(cfg: Config) -> dict[str, Any]:
     return {f.name: getattr(cfg, f.name) for f in fields(cfg)}
 
 
+MOVED_KEYS = {
+    **{f"model.poisson_{old}": f"poisson.{new}" for old, new in (
+        ("depth", "octree_depth"), ("scale", "scale"), ("normals", "normals"), ("orientation", "orientation"),
+        ("backend", "backend"), ("threads", "solver_threads"))},
+    **{f"train.expand_{name}": f"capudf.expand_{name}" for name in (
+        "at", "batch", "candidates", "df_filter", "low_range", "outlier", "rate")},
+    "data.capudf_total_queries": "capudf.total_queries", "loss.lambda_scc": "funsr.lambda_scc",
+    "loss.lambda_adl": "funsr.lambda_adl", "train.disc_lr": "funsr.disc_lr",
+    **{f"extract.{name}": f"grid.{name}" for name in (
+        "resolution", "box_margin", "cell_threshold", "udf2sdf", "udf2sdf_project", "far")},
+    "extract.grid_box": "grid.box",
+    **{f"extract.clean_{name}": f"clean.{name}" for name in (
+        "crossing", "vertex", "qef_window", "project_steps", "merge")},
+}
+"""Keys of earlier versions that a method's or an extractor's own section now holds: old → new."""
+
+
 def _resolve_key(cfg: Config, key: str) -> tuple[Any, str]:
     key = key.replace("__", ".")
+    if key in MOVED_KEYS:
+        raise InputError(f"config key {key!r} is now {MOVED_KEYS[key]!r}")
     sections = _sections(cfg)
     if "." in key:
         section, name = key.split(".", 1)
