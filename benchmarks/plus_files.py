@@ -100,7 +100,7 @@ def main() -> int:
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--plus", type=Path, default=PLUS)
-    ap.add_argument("--out", type=Path, default=Path("plus_runs"))
+    ap.add_argument("--out", type=Path, default=Path("bench_out/plus_runs"))
     ap.add_argument("--figures", type=Path, default=None, help="write the docs pictures here")
     args = ap.parse_args()
     if not args.plus.is_dir():
