@@ -12,7 +12,7 @@ from ultraboneudf.config import DMU_DEFAULTS, ExtractConfig
 from ultraboneudf.errors import InputError
 from ultraboneudf.extraction import CORNER, EDGE, PLANE, band_threshold, dualmesh_udf, extract_mesh
 from ultraboneudf.extraction import dualmesh as dm
-from ultraboneudf.fields import Field, PlaneUDF, SphereUDF
+from ultraboneudf.fields import DiscUDF, Field, PlaneUDF, SphereUDF, TorusUDF
 from ultraboneudf.progress import Progress
 
 UBU = ExtractConfig                       # the UltraBoneUDF call (§1.8) is the dataclass default
@@ -223,6 +223,45 @@ def test_sphere_depth_9_ubu_call():
     mesh = dualmesh_udf(SphereUDF(0.3), UBU(max_depth=9))
     radial = np.abs(np.linalg.norm(mesh.vertices, axis=1) - 0.3)
     assert radial.max() < 0.1 / 256
+
+
+class DriverPrecision(Field):
+    """A float64 field evaluated the way the reference's Python driver feeds its C++ core: the
+    query points rounded to float32, the values and gradients returned as float32."""
+
+    def __init__(self, inner: Field):
+        self.inner = inner
+
+    def _value_and_grad(self, x):
+        u, g = self.inner._value_and_grad(x.to(torch.float32).to(torch.float64))
+        return u.to(torch.float32), g.to(torch.float32)
+
+    def _value(self, x):
+        return self._value_and_grad(x)[0]
+
+
+# (vertices, faces) of the unmodified reference (cong-yi/DualMesh-UDF at 0e0ace1, its C++ core
+# driven like DualMeshUDF/extract_mesh.py, libigl 2.6's remove_duplicate_vertices) on the same
+# float32 field values: the driver's parameter set at depth 7, the UltraBoneUDF call's at depth 8.
+REFERENCE_COUNTS = [
+    ("disc", lambda: DiscUDF(0.4), dmu(max_depth=7), (2392, 16388)),
+    ("disc", lambda: DiscUDF(0.4), UBU(max_depth=8), (9088, 66452)),
+    ("sphere", lambda: SphereUDF(0.3), dmu(max_depth=7), (8360, 21900)),
+    ("torus", lambda: TorusUDF(0.4, 0.1), dmu(max_depth=7), (10832, 27144)),
+    ("plane", lambda: PlaneUDF(offset=0.1), dmu(max_depth=7), (16384, 32258)),
+]
+
+
+@pytest.mark.parametrize("make, cfg, counts", [c[1:] for c in REFERENCE_COUNTS],
+                         ids=[f"{c[0]}-{'dmu' if c[2].dedup_eps == 1e-7 else 'ubu'}-d{c[2].max_depth}"
+                              for c in REFERENCE_COUNTS])
+def test_vertex_and_face_counts_equal_the_reference(make, cfg, counts):
+    # The disc lies on a lattice plane: both band layers own vertices at the same places, the
+    # quads between the layers join coincident pairs (collinear points), and the reference keeps
+    # them as its SVD's column order dictates; its duplicate merge then leaves one sheet of
+    # vertices with every face twice.
+    mesh = dualmesh_udf(DriverPrecision(make()), cfg)
+    assert (len(mesh.vertices), len(mesh.faces)) == counts
 
 
 @pytest.mark.parametrize("field", [PlaneUDF(offset=5.0), ConstantField(1.0), ConstantField(float("nan"))],

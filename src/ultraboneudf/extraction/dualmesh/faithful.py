@@ -24,6 +24,26 @@ def _unit(v: torch.Tensor) -> torch.Tensor:
     return torch.where(n > 0, v / torch.where(n > 0, n, torch.ones_like(n)), torch.zeros_like(v))
 
 
+def _axis_normal(points: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """The normal the reference's SVD returns where the points do not fix one.
+
+    ``points`` (..., n, 3), ``normal`` (..., 3) the normal found otherwise. The reference takes the
+    last right singular vector of Eigen's ``JacobiSVD`` of the centred points; when they coincide or
+    lie on a line along a coordinate axis (a flat surface on a lattice plane, whose two stacked band
+    layers give quads of coincident vertex pairs) that vector is not determined by the geometry but
+    by Eigen's column order: no rotation happens, so it is the z axis, or the x axis for a line
+    along z. Other collinear points (a line off the axes) are left to ``normal``: there Eigen's
+    choice depends on rounding noise in its pivoting."""
+    centred = points - points.mean(-2, keepdim=True)
+    moves = (centred != 0).any(-2)                              # (..., 3) which coordinates vary
+    on_axis = moves.sum(-1) <= 1
+    axis = torch.zeros_like(normal)
+    axis[..., 2] = 1.0
+    along_z = moves[..., 2]
+    axis[along_z] = torch.tensor([1.0, 0.0, 0.0], dtype=normal.dtype, device=normal.device)
+    return torch.where(on_axis[..., None], axis, normal)
+
+
 def triangulate_dmu(position: torch.Tensor, kind: torch.Tensor, direction: torch.Tensor,
                     quads: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The quad → triangle rules of §2.9 as boolean algebra.
@@ -32,17 +52,18 @@ def triangulate_dmu(position: torch.Tensor, kind: torch.Tensor, direction: torch
     Returns faces (F, 3) int64 (vertex indices) and (Q,) bool whether each quad was kept."""
     P, T, Dd = position[quads], kind[quads].to(torch.int64), direction[quads]
     is_p, is_e = T == PLANE, T == EDGE
-    # 1. coplanarity from the singular values of the centred 4×3 matrix (eigen route, float64).
-    cen = P - P.mean(1, keepdim=True)
-    lam, vec = torch.linalg.eigh(cen.transpose(1, 2) @ cen)
-    lam = lam.clamp_min(0.0)
-    coplanar = lam[:, 0] < 0.0625 * lam[:, 2]       # s3 < 0.25·s1
+    # 1. coplanarity from the singular values of the centred 4×3 matrix. An SVD of the matrix
+    #    itself, not an eigen-solve of its Gram matrix: nearly collinear quads (two stacked band
+    #    layers) have s2 ≈ 1e-9·s1, which squaring would drown in rounding.
+    _, sv, vt = torch.linalg.svd(P - P.mean(1, keepdim=True), full_matrices=False)
+    coplanar = sv[:, 2] < 0.25 * sv[:, 0]
     # 2. coplanar quad: every PLANE normal near the quad normal, every EDGE line near the plane.
-    dots = (Dd * vec[:, None, :, 0]).sum(-1).abs()
+    quad_n = _axis_normal(P, vt[:, 2])
+    dots = (Dd * quad_n[:, None, :]).sum(-1).abs()
     cop_ok = ~((is_p & (dots < 0.85)) | (is_e & (dots > 0.5))).any(1)
     # 3. non-coplanar quad: PLANE vertex i checked against triangle (v_i, v_i+1, v_i+3).
     nxt, prv = P.roll(-1, 1), P.roll(1, 1)
-    tri_n = _unit(torch.linalg.cross(nxt - P, prv - P))
+    tri_n = _axis_normal(torch.stack([P, nxt, prv], -2), _unit(torch.linalg.cross(nxt - P, prv - P)))
     plane_fail = (is_p & ((Dd * tri_n).sum(-1).abs() < 0.85)).any(1)
     n_plane = is_p.sum(1)
     opposite = (is_p[:, 0] & is_p[:, 2]) | (is_p[:, 1] & is_p[:, 3])
@@ -103,7 +124,7 @@ def dualmesh_udf(field: Field, cfg: ExtractConfig, progress: Progress = QUIET) -
         advance(1)
         faces, kept = triangulate_dmu(position, kind, direction, quads)
         advance(1)
-        rep, faces = merge_vertices(position, faces, 10.0 * cfg.dedup_eps)
+        rep, faces = merge_vertices(position, faces, cfg.dedup_eps)
         meta = {"extractor": "dualmesh-udf", "mode": "faithful", "leaves": int(ijk.shape[0]),
                 "vertex_cells": int(cells.shape[0]), "quads": int(quads.shape[0]),
                 "quads_kept": int(kept.sum())}

@@ -79,7 +79,8 @@ def unique_rows(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def merge_vertices(position: torch.Tensor, faces: torch.Tensor, cell: float
                    ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Merge vertices whose coordinates quantise to the same integers ``round(x / cell)``.
+    """Merge vertices whose coordinates quantise to the same integers ``round(x / cell)`` (halves
+    rounded away from zero, as libigl's ``round``).
 
     Returns ``rep`` (V',) indices of the representatives (the lowest original index of each
     group, which keeps its exact coordinates; ordered by that index) and the faces remapped to
@@ -87,7 +88,8 @@ def merge_vertices(position: torch.Tensor, faces: torch.Tensor, cell: float
     n = position.shape[0]
     if cell <= 0 or n == 0:
         return torch.arange(n, device=position.device), faces
-    inv, first = unique_rows(torch.round(position / cell).to(torch.int64))
+    scaled = position / cell
+    inv, first = unique_rows((torch.sign(scaled) * torch.floor(scaled.abs() + 0.5)).to(torch.int64))
     groups = first.numel()
     order = torch.argsort(first)                 # groups by representative index
     rank = torch.empty_like(order)
