@@ -252,6 +252,10 @@ class TrainConfig(_Section):
     """Peak learning rate of Adam, reached after ``warmup`` steps, then a cosine decay to 0 (§0.6)."""
     warmup: int = 1_000
     """Linear warm-up iterations from lr = 0 (§0.6)."""
+    budget: Literal["reference", "cpu"] = "reference"
+    """What the baselines run: ``reference`` their published schedules (CAP-UDF 60,000 steps, FUNSR
+    15,000) and 256³ grids; ``cpu`` this section's ``iters`` and ``batch`` (CAP-UDF expands its
+    queries after two thirds of them) and 128³ grids. UltraBoneUDF follows this section either way."""
 
 
 @dataclass
@@ -522,6 +526,7 @@ def _fast() -> Config:
     cfg.train.threads = 1
     cfg.train.warmup = 400
     cfg.train.lr = 2e-3
+    cfg.train.budget = "cpu"
     cfg.extract.max_depth = 8
     cfg.extract.mode = "clean"
     cfg.extract.trim_mm = 3.0
@@ -592,11 +597,6 @@ PRESET_HELP = {
 
 UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 0.001}
 """Millimetres per unit of the units a point cloud file may be given in (``reconstruct --units``)."""
-
-SHORT_PRESETS = frozenset({"robust", "fast"})
-"""Presets made for a CPU budget: the baselines keep the preset's steps and batch there (instead of
-their papers' schedules) and use 128³ grids."""
-
 
 def preset(name: str) -> Config:
     """A fresh :class:`Config` of the named preset (``robust``, ``fast``, ``official`` or ``paper``)."""

@@ -298,7 +298,7 @@ def configure(preset: str, method: str, config: Config | None = None, overrides:
     entry = get_method(method)
     cfg = config if config is not None else make_preset(preset)
     if config is None:
-        entry.configure(cfg, preset)  # the method's own defaults, before the user's overrides
+        entry.configure(cfg)  # the method's own defaults, before the user's overrides
     apply_overrides(cfg, overrides, assignments)
     return validate(cfg, trains=entry.trains), entry
 

@@ -25,7 +25,7 @@ ALL = ("ultraboneudf", "capudf", "funsr", "carotidudf", "poisson", "vanilla_udf"
 
 def configured(method: str, preset_name: str = "official") -> Config:
     cfg = preset(preset_name)
-    get_method(method).configure(cfg, preset_name)
+    get_method(method).configure(cfg)
     return cfg
 
 

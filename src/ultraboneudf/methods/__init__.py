@@ -1,7 +1,7 @@
 """Reconstruction methods by name. Adding a method = one module + one entry in :func:`_registry`
 (and its name in :data:`NAMES`).
 
-Each entry is a :class:`~ultraboneudf.methods.base.Method`: ``fit`` and ``configure(cfg, preset)``,
+Each entry is a :class:`~ultraboneudf.methods.base.Method`: ``fit`` and ``configure(cfg)``,
 which sets the method's own defaults on a fresh preset before the user's overrides. The method
 modules (and PyTorch) are imported when the registry :data:`METHODS` is first used; :data:`NAMES`
 is there without them, for the command line's choices.

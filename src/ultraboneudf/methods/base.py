@@ -11,7 +11,7 @@ pipeline's :class:`~ultraboneudf.geometry.surface_fit.LocalPlanes` of ``points``
 space), or ``None`` when ``data.surface_fit_mm`` is 0. Other methods never receive them.
 
 The registry (:data:`ultraboneudf.methods.METHODS`) holds one :class:`Method` per name: its ``fit``
-and a ``configure(cfg, preset)`` that sets the method's own defaults (network, loss, schedule,
+and a ``configure(cfg)`` that sets the method's own defaults (network, loss, schedule,
 extractor) on a fresh preset config *before* the user's overrides are applied.
 """
 
@@ -50,16 +50,16 @@ class Fitted:
 
 
 FitFunction = Callable[["np.ndarray", Config, "torch.device", int, "Progress"], Fitted]
-ConfigureFunction = Callable[[Config, str], None]
+ConfigureFunction = Callable[[Config], None]
 
 
-def keep_preset(cfg: Config, preset: str) -> None:
+def keep_preset(cfg: Config) -> None:
     """``configure`` of a method whose defaults are the presets themselves (UltraBoneUDF)."""
 
 
 @dataclass(frozen=True)
 class Method:
-    """A registry entry: ``fit`` and ``configure(cfg, preset_name)`` (method defaults, in place).
+    """A registry entry: ``fit`` and ``configure(cfg)`` (method defaults, in place).
     ``takes_probe`` / ``takes_planes``: ``fit`` accepts per-point probe positions as ``probe=`` /
     the local planes as ``planes=`` (see the module doc); ``takes_checkpoint``: ``fit`` accepts a
     :class:`~ultraboneudf.checkpoints.Checkpoint` as ``checkpoint=`` (its training can resume)."""

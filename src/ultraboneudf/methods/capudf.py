@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..config import Config, SHORT_PRESETS
+from ..config import Config
 from ..errors import InputError
 from ..fields.base import normalize
 from ..fields.mlp import MLPField, count_parameters, value_and_grad
@@ -30,10 +30,10 @@ from .ultraboneudf import build_network
 MIN_POINTS = 60
 
 
-def configure(cfg: Config, preset: str) -> None:
-    """CAP-UDF ``base.conf`` defaults (§3.2–3.5). For the short presets (``robust``, ``fast``) the
-    preset's iterations and batch are kept and the expansion happens after two thirds of them (the
-    reference ratio 40k / 60k)."""
+def configure(cfg: Config) -> None:
+    """CAP-UDF ``base.conf`` defaults (§3.2–3.5). With ``train.budget = "cpu"`` the preset's
+    iterations and batch are kept and the expansion happens after two thirds of them (the reference
+    ratio 40k / 60k)."""
     cfg.model.hidden = (256,) * 8
     cfg.model.skip = (4,)
     cfg.model.abs_output = True
@@ -43,7 +43,7 @@ def configure(cfg: Config, preset: str) -> None:
     cfg.data.queries = "capudf"
     cfg.data.anchors = "none"
     cfg.data.grid_queries = 0
-    if preset in SHORT_PRESETS:
+    if cfg.train.budget == "cpu":
         cfg.capudf.expand_at = (2 * cfg.train.iters) // 3
         cfg.capudf.expand_batch = 4 * cfg.train.batch
         cfg.capudf.expand_candidates = 200_000

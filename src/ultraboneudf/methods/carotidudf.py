@@ -20,7 +20,7 @@ import time
 import numpy as np
 import torch
 
-from ..config import Config, SHORT_PRESETS
+from ..config import Config
 from ..fields.mlp import MLPField, count_parameters
 from ..geometry.normals import ultraboneudf_normals
 from ..geometry.surface_fit import LocalPlanes
@@ -40,31 +40,31 @@ def _pull_only(cfg: Config) -> None:
     cfg.data.anchors = "none"
 
 
-def _udf2sdf_extraction(cfg: Config, preset: str) -> None:
-    """§5.4: ``normal-sign`` marching cubes on 256³ points over [−1, 1]³ (128³ for the short presets ``robust`` and ``fast``)."""
+def _udf2sdf_extraction(cfg: Config) -> None:
+    """§5.4: ``normal-sign`` marching cubes on 256³ points over [−1, 1]³ (128³ with ``train.budget = "cpu"``)."""
     cfg.extract.mode = "udf2sdf"
     cfg.grid.udf2sdf = "normal-sign"
-    cfg.grid.resolution = 128 if preset in SHORT_PRESETS else 256
+    cfg.grid.resolution = 128 if cfg.train.budget == "cpu" else 256
     cfg.grid.box = "domain"
     cfg.extract.domain = (-1.0, 1.0)
     cfg.extract.batch = 1_000_000
 
 
-def configure_carotidudf(cfg: Config, preset: str) -> None:
+def configure_carotidudf(cfg: Config) -> None:
     """CarotidUDF defaults (§5.2–5.4); iterations and batch stay the preset's (30,000 × 5,000)."""
     _pull_only(cfg)
     cfg.model.hidden = (256,) * 8
     cfg.model.skip = ()
-    _udf2sdf_extraction(cfg, preset)
+    _udf2sdf_extraction(cfg)
 
 
-def configure_vanilla(cfg: Config, preset: str) -> None:
+def configure_vanilla(cfg: Config) -> None:
     """Vanilla UDF (§5.5): UltraBoneUDF network, ``L_pull``, CarotidUDF extraction."""
     _pull_only(cfg)
-    _udf2sdf_extraction(cfg, preset)
+    _udf2sdf_extraction(cfg)
 
 
-def configure_pull(cfg: Config, preset: str) -> None:
+def configure_pull(cfg: Config) -> None:
     """UltraBoneUDF(L_pull) (§5.5): UltraBoneUDF network and extraction, ``L_pull`` only."""
     _pull_only(cfg)
 

@@ -32,7 +32,7 @@ INSTALL_HINT = ("the poisson method needs a screened-Poisson library: pip instal
                 "(installs pymeshlab), or pip install open3d and --set poisson.backend=open3d")
 
 
-def configure(cfg: Config, preset: str) -> None:
+def configure(cfg: Config) -> None:
     """Nothing to train: the preset's data settings pick the input cloud (§7.1)."""
     cfg.train.iters = 0
 
