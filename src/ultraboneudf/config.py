@@ -492,20 +492,15 @@ def _paper() -> Config:
 
 
 def _fast() -> Config:
-    """Designed for a 100k-point cloud on a 2-core CPU (see README, "Presets").
+    """Designed for a 100k-point cloud on a 2-core CPU (measured in docs/results.md).
 
-    Measured on the open femur (the tests' and README's input). What limits a short run is the
-    number of optimiser steps: the tangent loss grows the zero set outward from the initial sphere,
-    and 2,000 steps × 2,000 queries left the epiphyses without one (CD 3.4 mm). A warm start (1,000 steps regressing
-    u on the distance to P) puts a zero set near every part of the bone first; without it one seed
-    in two lost an epiphysis. The far-field term (λ_far = 1) keeps regressing u on that distance
-    more than 0.01 (4.5 mm on the femur) from P, which halved the faithful-mode CD of a bad seed
-    (1.35 → 0.56 mm). Applied to every query (``far_threshold = 0``) it also pins u to the distance
-    near the data, so the zero set reaches the open rims: femur CD 0.34/0.38/0.37 → 0.31/0.28/0.28 mm
-    (seeds 42/1/2), tibia 0.36 → 0.27, demo 0.126 → 0.119, on the real sample 5.6% → 2.2% of the
-    input more than 3 mm from the mesh, at the same speed. A 64-wide network is as accurate as 128
-    here and half the work; the epoch sampler and 128 random anchors per step for L_GS cut the
-    per-step overhead further.
+    What limits a short run is the number of optimiser steps: the tangent loss grows the zero set
+    outward from the initial sphere and can leave a part of the bone without one. A warm start
+    (regressing u on the distance to P) first puts a zero set near every part of the data; the
+    far-field term, applied to every query, keeps forbidding zero sets away from the data and pins u
+    to the distance near it, so the zero set reaches the open rims. A 64-wide network is as accurate
+    as 128 here at half the work; the epoch sampler and 128 random anchors a step for L_GS cut the
+    per-step overhead.
     """
     cfg = Config()
     cfg.data.subset = "fps"
@@ -531,7 +526,7 @@ def _fast() -> Config:
     cfg.extract.mode = "clean"
     cfg.extract.trim_mm = 3.0
     # Trained fields' minima are not their exact zero sets: moving the QEF vertices onto them cost
-    # accuracy on every field measured (femur 0.42 → 0.38 mm, tibia 0.43 → 0.40, phantom 0.128 → 0.121).
+    # accuracy on every field measured (docs/results.md, "Presets").
     cfg.clean.project_steps = 0
     return cfg
 
