@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import textwrap
 from dataclasses import fields
+from pathlib import Path
+from typing import Any
 
 from ..config import DEFAULT_PRESET, PRESETS, Config, field_docs
 from ..methods import NAMES
@@ -23,6 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--changed", action="store_true",
                    help="only the fields that differ from the dataclass defaults")
     p.add_argument("--json", action="store_true", help="the resolved values as JSON (as in the sidecar)")
+    p.add_argument("--update-docs", type=Path, metavar="FILE",
+                   help="rewrite the generated tables of a Markdown page (docs/methods.md) from the "
+                        "dataclasses and the methods' defaults")
     p.set_defaults(func=run)
 
 
@@ -43,9 +49,90 @@ def lines(cfg: Config, changed: bool = False) -> list[str]:
     return out
 
 
+# ---------------------------------------------------------------------------------- docs tables
+
+BLOCK = re.compile(r"(<!-- config (?P<spec>[^>]*?) -->\n)(?P<body>.*?)(<!-- end config -->)", re.S)
+"""A generated table: ``<!-- config KEY=VALUE ... -->`` … ``<!-- end config -->``."""
+
+
+def _value(value: Any) -> str:
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, (tuple, list)):
+        return ",".join(str(v) for v in value)
+    return str(value)
+
+
+def _markdown(doc: str) -> str:
+    """A docstring as table-cell Markdown: reST literals and roles as code, no bare ``|``."""
+    doc = re.sub(r":\w+:`~?([^`]+)`", r"`\1`", doc)
+    return re.sub(r"``([^`]+)``", r"`\1`", doc).replace("|", "\\|")
+
+
+def _flat(cfg: Config) -> dict[str, Any]:
+    return {f"{s.name}.{f.name}": getattr(getattr(cfg, s.name), f.name)
+            for s in fields(cfg) for f in fields(getattr(cfg, s.name))}
+
+
+def _docs() -> dict[str, str]:
+    out = {}
+    for section in fields(Config):
+        for name, doc in field_docs(section.type if isinstance(section.type, type)
+                                    else type(getattr(Config(), section.name))).items():
+            out[f"{section.name}.{name}"] = _markdown(doc)
+    return out
+
+
+def table(spec: str) -> str:
+    """The Markdown table a block's ``spec`` asks for, one row per field (``--set`` spelling, value,
+    the field's docstring):
+
+    - ``method=M``: every field the method's ``configure`` changes on the ``official`` preset
+      (``official value → M's``) and every field of the sections in ``sections=a,b``;
+    - ``preset=P base=B``: every field preset ``P`` sets differently from preset ``B``;
+    - ``sections=a,b`` alone: every field of those sections; ``keys=a.x,b.y``: those fields."""
+    from ..pipeline import configure
+
+    args = dict(item.split("=", 1) for item in spec.split())
+    docs = _docs()
+    base_name = args.get("base", "official")
+    base = _flat(configure(base_name, "ultraboneudf")[0])
+    if "method" in args:
+        target = _flat(configure("official", args["method"])[0])
+        head = f"`official` → `{args['method']}`"
+    elif "preset" in args:
+        target = _flat(configure(args["preset"], "ultraboneudf")[0])
+        head = f"`{base_name}` → `{args['preset']}`"
+    else:
+        target, head = base, "default"
+    keys = [k for k in target if target[k] != base[k]] if ("method" in args or "preset" in args) else []
+    sections = [s for s in args.get("sections", "").split(",") if s]
+    keys += [k for k in target if k.split(".")[0] in sections and k not in keys]
+    keys += [k for k in args.get("keys", "").split(",") if k and k not in keys]
+    rows = ["| `--set` | " + head + " | meaning |", "| --- | --- | --- |"]
+    for key in keys:
+        before, after = _value(base[key]), _value(target[key])
+        shown = " → ".join(f"`{v}`" if v else "empty" for v in ((before, after) if before != after else (after,)))
+        rows.append(f"| `{key}={after}` | {shown} | {docs[key]} |")
+    return "\n".join(rows) + "\n"
+
+
+def update_docs(text: str) -> str:
+    """``text`` with every generated block rewritten from the dataclasses."""
+    return BLOCK.sub(lambda m: m.group(1) + table(m.group("spec")) + m.group(4), text)
+
+
 def run(args: argparse.Namespace) -> int:
     from ..pipeline import configure
 
+    if args.update_docs is not None:
+        path = args.update_docs
+        text = path.read_text(encoding="utf-8")
+        new = update_docs(text)
+        if new != text:
+            path.write_text(new, encoding="utf-8")
+        print(f"config: {path}: {len(BLOCK.findall(text))} tables" + (" rewritten" if new != text else " up to date"))
+        return 0
     cfg, _ = configure(args.preset, args.method, None, None, args.assignments)
     if args.json:
         print(json.dumps(cfg.to_dict(), indent=2))
