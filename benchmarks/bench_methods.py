@@ -33,14 +33,16 @@ METHODS = "ultraboneudf,ultraboneudf_pull,vanilla_udf,carotidudf,capudf,funsr,po
 
 def make_inputs(which: list[str], seed: int = 0) -> dict:
     """{name: (points mm (N, 3), truth mesh)} for ``open`` and ``closed`` femur."""
+    import trimesh
+
     from ultraboneudf import load_mesh
-    from ultraboneudf.synth import facing_surface, sample_surface
+    from ultraboneudf.synth import facing_surface
 
     femur = load_mesh(BONES / "femur.ply")
     out = {}
     for name in which:
         truth = facing_surface(femur, (0.0, 0.0, 1.0)) if name == "open" else femur
-        out[name] = (sample_surface(truth, 100_000, seed=seed), truth)
+        out[name] = (trimesh.sample.sample_surface(truth, 100_000, seed=seed)[0], truth)
     return out
 
 

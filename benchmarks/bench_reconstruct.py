@@ -31,15 +31,17 @@ BONES = Path(os.environ.get("ULTRABONEUDF_BONES", Path(__file__).resolve().paren
 
 def make_input(name: str, seed: int = 0):
     """(points mm (N,3), truth mesh) for ``femur`` (open, z-facing) or ``phantom``."""
+    import trimesh
+
     from ultraboneudf import load_mesh
-    from ultraboneudf.synth import bone_phantom, facing_surface, sample_surface
+    from ultraboneudf.synth import bone_phantom, facing_surface
 
     if name == "phantom":
         ph = bone_phantom(seed=seed)
         return ph.points, ph.truth
     bone = BONES / f"{name}.ply"
     truth = facing_surface(load_mesh(bone), (0.0, 0.0, 1.0))
-    return sample_surface(truth, 100_000, seed=seed), truth
+    return trimesh.sample.sample_surface(truth, 100_000, seed=seed)[0], truth
 
 
 def run_one(args: argparse.Namespace) -> list[dict]:

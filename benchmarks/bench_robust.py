@@ -53,7 +53,7 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
     import trimesh
 
     from ultraboneudf import load_mesh
-    from ultraboneudf.synth import facing_surface, sample_surface
+    from ultraboneudf.synth import facing_surface
 
     tag = cache / f"{bone}_{level}_s{seed}{'_aligned' if align and level in SWEEP_LEVELS else ''}"
     if (tag / "points.npz").exists():
@@ -74,7 +74,7 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
         points, probe, truth = cp.points, cp.probe_position, sim.visible_mesh
     elif level == "open" or level.startswith("e6-"):
         truth = facing_surface(mesh, (0.0, 0.0, 1.0))
-        points, probe = sample_surface(truth, 100_000, seed=seed), None
+        points, probe = trimesh.sample.sample_surface(truth, 100_000, seed=seed)[0], None
         if level != "open":
             sigma = float(level[3:])
             points = points + np.random.default_rng(seed + 1000).normal(0.0, sigma, points.shape)
@@ -195,12 +195,14 @@ def main() -> None:
                         f.write(json.dumps(rows[-1]) + "\n")
                 meshes[method] = mesh
             if args.pictures and meshes:
+                import trimesh
+
                 from ultraboneudf.evaluation.render import render_grid_png
-                from ultraboneudf.synth import sample_surface
 
                 args.pictures.mkdir(parents=True, exist_ok=True)
                 render_grid_png(args.pictures / f"{bone}_{level}.png", meshes,
-                                sample_surface(truth, 200_000, seed=0), views=("front", "top"), ground_truth=truth)
+                                trimesh.sample.sample_surface(truth, 200_000, seed=0)[0], views=("front", "top"),
+                                ground_truth=truth)
     print_table(rows)
 
 

@@ -24,11 +24,12 @@ from bench_reconstruct import BONES  # noqa: E402
 CHILD = r"""
 import json, resource, sys, time
 import numpy as np
+import trimesh
 import ultraboneudf
-from ultraboneudf.synth import facing_surface, sample_surface
+from ultraboneudf.synth import facing_surface
 n, preset, iters = int(sys.argv[1]), sys.argv[2], int(sys.argv[3])
 truth = facing_surface(ultraboneudf.load_mesh(sys.argv[4]), (0.0, 0.0, 1.0))
-pts = sample_surface(truth, n, seed=0) + np.random.default_rng(1).normal(0.0, 0.2, (n, 3))
+pts = trimesh.sample.sample_surface(truth, n, seed=0)[0] + np.random.default_rng(1).normal(0.0, 0.2, (n, 3))
 t0 = time.perf_counter()
 rec = ultraboneudf.reconstruct(pts, preset=preset, device="cpu", seed=0, **{"train.iters": iters})
 wall = time.perf_counter() - t0

@@ -58,7 +58,6 @@ def main() -> None:
     import torch
 
     import ultraboneudf
-    from ultraboneudf.synth import sample_surface
 
     torch.set_num_threads(args.threads)
     points, probe, truth = make_input(args.bone, args.level, args.seed, args.cache)
@@ -82,10 +81,12 @@ def main() -> None:
     if args.picture:
         from PIL import Image
 
+        import trimesh
+
         from ultraboneudf.evaluation.render import render_grid_image
 
         # one column per preset: the truth coloured by its distance to that preset's mesh
-        tiles = [render_grid_image({name: truth}, sample_surface(mesh, 400_000, seed=0),
+        tiles = [render_grid_image({name: truth}, trimesh.sample.sample_surface(mesh, 400_000, seed=0)[0],
                                    views=("front", "top"))
                  for name, mesh in columns.items()]
         canvas = Image.new("RGB", (sum(t.width for t in tiles), max(t.height for t in tiles)), "white")

@@ -43,7 +43,9 @@ def make_dataset(kind: str, source: str | os.PathLike, out: str | os.PathLike, *
     """Write the dataset ``kind`` made from the meshes (or pairs) in ``source`` into ``out``;
     returns the manifest's path. Lengths in mm; ``samples`` points per open/closed bone; ``level``
     and ``seeds`` for ``simsweep``."""
-    from ..synth import facing_surface, sample_surface
+    import trimesh
+
+    from ..synth import facing_surface
 
     source, out = Path(source), Path(out)
     if kind not in KINDS:
@@ -62,10 +64,10 @@ def make_dataset(kind: str, source: str | os.PathLike, out: str | os.PathLike, *
                 probe = None
                 if kind == "openbone":
                     truth = facing_surface(mesh, (0.0, 0.0, 1.0))
-                    points = sample_surface(truth, samples, seed=seed)
+                    points = trimesh.sample.sample_surface(truth, samples, seed=seed)[0]
                 elif kind == "closedbone":
                     truth = mesh
-                    points = sample_surface(truth, samples, seed=seed)
+                    points = trimesh.sample.sample_surface(truth, samples, seed=seed)[0]
                 else:
                     from ..sweep import align_frames, sweep_to_points
                     from ..synth.simulator import config_with_noise, simulate_sweep

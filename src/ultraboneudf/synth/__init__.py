@@ -6,8 +6,7 @@ from __future__ import annotations
 
 from .._lazy import lazy_getattr
 
-_WHERE = {"Phantom": "phantom", "bone_phantom": "phantom", "facing_surface": "phantom",
-          "sample_surface": "phantom"}
+_WHERE = {"Phantom": "phantom", "bone_phantom": "phantom", "facing_surface": "phantom"}
 
 __all__ = list(_WHERE)
 

@@ -108,9 +108,3 @@ def facing_surface(mesh: trimesh.Trimesh, direction=(0.0, 0.0, 1.0)) -> trimesh.
     part = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
     part.remove_unreferenced_vertices()
     return part
-
-
-def sample_surface(mesh: trimesh.Trimesh, count: int, seed: int = 0) -> np.ndarray:
-    """``count`` area-uniform samples ``(count, 3)`` of a mesh, reproducible from ``seed``."""
-    points, _ = trimesh.sample.sample_surface(mesh, count, seed=seed)
-    return np.asarray(points, dtype=np.float64)
