@@ -123,6 +123,10 @@ def test_modes_checked_on_construction_and_before_a_run():
     cfg.loss.lambda_gs = float("nan")
     with pytest.raises(InputError, match="loss.lambda_gs=nan"):
         validate(cfg)
+    cfg = preset("fast")
+    cfg.grid.resolution = 1           # checked before training, not when the grid extractor runs
+    with pytest.raises(InputError, match=r"grid.resolution=1 \(at least 2\)"):
+        validate(cfg)
 
 
 def test_every_field_has_a_docstring_and_the_config_command_prints_it(capsys):

@@ -743,6 +743,7 @@ def validate(cfg: Config, trains: bool = True) -> Config:
     need(t.warmup >= 0, "train.warmup", "0 or more")
     need(0.0 <= lo.warm_start < 1.0, "loss.warm_start", "a fraction in [0, 1)")
     need(1 <= e.max_depth <= MAX_DEPTH, "extract.max_depth", f"between 1 and {MAX_DEPTH}")
+    need(cfg.grid.resolution >= 2, "grid.resolution", "at least 2")
     for key in ("data.voxel_size_mm", "data.surface_fit_mm", "data.bridge", "data.rim_reach",
                 "data.shadow_mm", "data.outlier_sigmas", "extract.trim_mm", "extract.fit_mm",
                 "extract.min_leaf_mm"):
