@@ -54,7 +54,7 @@ from ...errors import InputError
 from ...fields.base import Field, normalize
 from ...progress import QUIET, Progress
 from .mesh import RING_OFFSETS, build_mesh, lookup_cells, merge_vertices, unique_rows
-from .octree import Lattice, LeafSamples, band_leaves, pack, sample_leaves, unpack
+from .octree import Lattice, LeafSamples, band_samples, pack, unpack
 from .qef import solve_leaves
 
 _PERTURB = torch.tensor([0.5257311121, 0.6180339887, 0.5847102846], dtype=torch.float64)
@@ -418,11 +418,10 @@ def clean_udf_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET,
     lat = Lattice.from_config(cfg)
     h = lat.cell_size()
     with progress.stage("UDF clean", total=lat.depth + 1 + 5) as advance:
-        ijk = band_leaves(field, cfg, advance)
-        if ijk.shape[0] == 0:
+        band = band_samples(field, cfg, advance)
+        if band is None:
             return None
-        samples = sample_leaves(field, cfg, ijk)
-        advance(1)
+        ijk, samples = band
         edges, cross_x = crossed_edges(field, cfg, opts, samples, h)
         ring, inside = edge_rings(edges, samples, lat)
         advance(1)

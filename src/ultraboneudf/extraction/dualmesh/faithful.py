@@ -10,7 +10,7 @@ from ...config import ExtractConfig
 from ...fields.base import Field
 from ...progress import QUIET, Progress
 from .mesh import build_mesh, dual_quads, merge_vertices
-from .octree import Lattice, band_leaves, sample_leaves
+from .octree import Lattice, band_samples
 from .qef import EDGE, PLANE, solve_leaves
 
 
@@ -108,11 +108,10 @@ def dualmesh_udf(field: Field, cfg: ExtractConfig, progress: Progress = QUIET) -
     """
     lat = Lattice.from_config(cfg)
     with progress.stage("DualMesh-UDF", total=lat.depth + 1 + 5) as advance:
-        ijk = band_leaves(field, cfg, advance)
-        if ijk.shape[0] == 0:
+        band = band_samples(field, cfg, advance)
+        if band is None:
             return None
-        samples = sample_leaves(field, cfg, ijk)
-        advance(1)
+        ijk, samples = band
         verts = solve_leaves(samples, ijk, cfg)
         advance(1)
         has = verts.has

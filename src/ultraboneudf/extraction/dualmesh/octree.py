@@ -193,3 +193,15 @@ def sample_leaves(field: Field, cfg: ExtractConfig, ijk: torch.Tensor) -> LeafSa
     if rows.numel():
         usable[rows] = field.value(proj[rows], chunk=cfg.batch) < cfg.valid_threshold
     return LeafSamples(ids, index, points, u, grad, grad_ok, proj, plane, usable)
+
+
+def band_samples(field: Field, cfg: ExtractConfig, advance: Callable[[float], None] = _noop
+                 ) -> tuple[torch.Tensor, LeafSamples] | None:
+    """The band's leaves (:func:`band_leaves`) and their samples (:func:`sample_leaves`), the start
+    of both extractors; ``None`` when no cell survives the band test."""
+    ijk = band_leaves(field, cfg, advance)
+    if ijk.shape[0] == 0:
+        return None
+    samples = sample_leaves(field, cfg, ijk)
+    advance(1)
+    return ijk, samples
