@@ -213,8 +213,9 @@ class LossConfig(_Section):
     """What ``warm_start`` and ``lambda_far`` regress ``u(q)`` on: ``point``, the distance to the
     nearest surface point ``t(q)`` (the reference's target); ``surface``, the distance to the surface
     interpolated between the points across gaps up to ``data.bridge``
-    (:mod:`~ultraboneudf.geometry.support`; needs ``data.surface_fit_mm``). Between the slices of a sweep the nearest point lies
-    beside the query, not under it: ``point`` then asks for a ridge of ``u`` between the slices."""
+    (:mod:`~ultraboneudf.geometry.support`; needs ``data.surface_fit_mm``). Between the slices of a
+    sweep the nearest point lies beside the query, not under it: ``point`` then asks for a ridge of
+    ``u`` between the slices."""
     gs_anchors: int = 0
     """Anchors drawn at random (with replacement) for ``L_GS`` at each step; 0 = all anchors every
     step (the reference). A subset is an unbiased estimate of the same loss at a fraction of the cost."""

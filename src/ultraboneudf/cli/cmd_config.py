@@ -75,12 +75,9 @@ def _flat(cfg: Config) -> dict[str, Any]:
 
 
 def _docs() -> dict[str, str]:
-    out = {}
-    for section in fields(Config):
-        for name, doc in field_docs(section.type if isinstance(section.type, type)
-                                    else type(getattr(Config(), section.name))).items():
-            out[f"{section.name}.{name}"] = _markdown(doc)
-    return out
+    cfg = Config()
+    return {f"{s.name}.{name}": _markdown(doc)
+            for s in fields(cfg) for name, doc in field_docs(type(getattr(cfg, s.name))).items()}
 
 
 def table(spec: str) -> str:
@@ -131,7 +128,8 @@ def run(args: argparse.Namespace) -> int:
         new = update_docs(text)
         if new != text:
             path.write_text(new, encoding="utf-8")
-        print(f"config: {path}: {len(BLOCK.findall(text))} tables" + (" rewritten" if new != text else " up to date"))
+        state = "rewritten" if new != text else "up to date"
+        print(f"config: {path}: {len(BLOCK.findall(text))} tables {state}")
         return 0
     cfg, _ = configure(args.preset, args.method, None, None, args.assignments)
     if args.json:

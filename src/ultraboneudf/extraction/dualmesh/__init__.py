@@ -21,6 +21,6 @@ from .mesh import build_mesh, cell_ring, dual_quads, merge_vertices
 from .octree import Lattice, band_leaves, band_samples, band_threshold, pack, sample_leaves, unpack
 from .qef import CORNER, EDGE, NO_VERTEX, PLANE, TYPE_NAMES, qef_solve, solve_leaves
 
-__all__ = ["CORNER", "EDGE", "NO_VERTEX", "PLANE", "TYPE_NAMES", "Lattice", "band_leaves", "band_samples", "band_threshold",
-           "build_mesh", "cell_ring", "clean_udf_mesh", "dual_quads", "dualmesh_udf", "merge_vertices", "pack",
-           "qef_solve", "sample_leaves", "solve_leaves", "triangulate_dmu", "unpack"]
+__all__ = ["CORNER", "EDGE", "NO_VERTEX", "PLANE", "TYPE_NAMES", "Lattice", "band_leaves", "band_samples",
+           "band_threshold", "build_mesh", "cell_ring", "clean_udf_mesh", "dual_quads", "dualmesh_udf",
+           "merge_vertices", "pack", "qef_solve", "sample_leaves", "solve_leaves", "triangulate_dmu", "unpack"]
