@@ -87,3 +87,15 @@ def test_nothing_to_render_is_an_input_error(tmp_path):
 
     with pytest.raises(InputError):
         render_grid_png(tmp_path / "x.png", {"a": None}, None)
+
+
+def test_grid_columns_are_as_wide_as_their_labels_for_a_thin_bone(tmp_path):
+    from ultraboneudf.evaluation.render import _font
+
+    rod = trimesh.creation.box(extents=(1.0, 1.0, 30.0))       # tall and thin: a narrow tile
+    out = tmp_path / "grid.png"
+    render_grid_png(out, {"first method": rod, "second method": rod}, rod.vertices, views=("front",),
+                    tile_height=120, means_mm={"first method": 0.25, "second method": 0.5})
+    img = np.asarray(Image.open(out).convert("RGB"))
+    label = _font(12).getlength("second method")
+    assert (img.shape[1] - 90) / 2 >= label + 16                 # two columns beside the 90 px bar

@@ -439,22 +439,28 @@ def render_grid_image(meshes: Mapping[str, Optional[MeshLike]], reference: Optio
     head_h = int(54 * max(0.75, tile_height / 360))
     font = _font(int(16 * max(0.75, tile_height / 360)))
     bar = _colour_bar(framing.height * len(cams) + head_h, vmax, None, scale=max(0.75, tile_height / 360))
-    canvas = Image.new("RGB", (framing.width * len(cols) + bar.width, framing.height * len(cams) + head_h),
-                       BACKGROUND)
+    heads = []
+    for name, c in cols:
+        mean = None
+        if c is not None and (name != "ground truth" or ground_truth is None):
+            mean = (means_mm or {}).get(name, c.mean_mm)
+        second = ("failed (no mesh)" if c is None else
+                  f"mean {mean:.2f} mm" if mean is not None and not math.isnan(mean) else "")
+        heads.append((name, second))
+    # a column is as wide as its header: a tall, thin bone would otherwise run the labels together
+    width = max([framing.width] + [int(font.getlength(t)) + 16 for head in heads for t in head])
+    canvas = Image.new("RGB", (width * len(cols) + bar.width, framing.height * len(cams) + head_h), BACKGROUND)
     draw = ImageDraw.Draw(canvas)
-    for j, (name, c) in enumerate(cols):
-        x = j * framing.width
+    for j, ((name, c), (_, second)) in enumerate(zip(cols, heads)):
+        x = j * width
         draw.text((x + 8, 6), name, fill=(0, 0, 0), font=font)
+        draw.text((x + 8, head_h // 2 + 2), second, fill=(180, 0, 0) if c is None else (40, 40, 40), font=font)
         if c is None:
-            draw.text((x + 8, head_h // 2 + 2), "failed (no mesh)", fill=(180, 0, 0), font=font)
             continue
-        mean = (means_mm or {}).get(name, c.mean_mm) if name != "ground truth" or ground_truth is None else None
-        if mean is not None and not math.isnan(mean):
-            draw.text((x + 8, head_h // 2 + 2), f"mean {mean:.2f} mm", fill=(40, 40, 40), font=font)
         for i, cam in enumerate(cams):
             tile = render_view(c.vertices, c.faces, cam, framing, c.values, vmax)
-            canvas.paste(Image.fromarray(tile), (x, head_h + i * framing.height))
-    canvas.paste(bar, (framing.width * len(cols), 0))
+            canvas.paste(Image.fromarray(tile), (x + (width - framing.width) // 2, head_h + i * framing.height))
+    canvas.paste(bar, (width * len(cols), 0))
     return canvas
 
 
