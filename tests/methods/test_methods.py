@@ -168,3 +168,18 @@ def test_pca_normals_of_a_plane():
     p = np.c_[rng.uniform(-0.5, 0.5, (2000, 2)), np.zeros(2000)]
     n = pca_normals(p, p, radius=0.5, max_nn=1000)
     assert np.abs(n[:, 2]).min() > 0.999
+
+
+def test_the_budget_field_not_the_preset_name_sets_the_baselines_schedule():
+    from ultraboneudf.pipeline import configure
+
+    cpu, _ = configure("robust", "capudf")
+    assert cpu.train.budget == "cpu" and cpu.train.iters == preset("robust").train.iters
+    assert cpu.capudf.expand_at == 2 * cpu.train.iters // 3 and cpu.grid.resolution == 128
+    # the same preset asked for the published schedule (the method reads the field it is given)
+    cfg = preset("robust")
+    cfg.train.budget = "reference"
+    get_method("capudf").configure(cfg)
+    assert (cfg.train.iters, cfg.capudf.expand_at, cfg.grid.resolution) == (60_000, 40_000, 256)
+    funsr, _ = configure("official", "funsr")
+    assert funsr.train.budget == "reference" and funsr.train.iters == 15_000 and funsr.grid.resolution == 256
