@@ -8,11 +8,16 @@ query counts as lying over a gap when, among its ``k`` nearest points, one lies 
 side of it from the nearest (in the nearest point's plane) within the local gap length ``bridge``
 (also the point nearest to the query moved away from the nearest by half that length, which finds
 the next slice when the ``k`` nearest all lie on the nearest's own).
-There the distance is the distance to the points' planes (the nearest point's and that opposite
-one's, interpolated by in-plane distance); elsewhere — beyond the rim of an open surface, or with no
-plane — it is the distance to a disc of radius ``reach`` around the nearest point in its plane (0:
-the point itself). So gaps up to ``bridge`` close, and rims stay within ``reach`` of where the data
-end.
+There the distance is the distance to the surface through the two: where their planes agree
+(normals within 10°), the planes, interpolated by in-plane distance, which average the jitter
+between slices; where they do not (from 20°; a blend in between), the chord from the nearest point
+to the opposite one, swept along the surface (its normal: the mean of the two normals, made
+perpendicular to the chord). Planes disagree across a gap on a curved bone, and where a fit went
+wrong: a plane fitted at the rim of a run of missing frames sees neighbours on one side only, and
+the two rims' planes extrapolated to the middle of the gap miss the bone there by about twice the
+chord's sagitta. Elsewhere — beyond the rim of an open surface, or with no plane — it is the
+distance to a disc of radius ``reach`` around the nearest point in its plane (0: the point itself).
+So gaps up to ``bridge`` close, and rims stay within ``reach`` of where the data end.
 """
 
 from __future__ import annotations
@@ -20,6 +25,8 @@ from __future__ import annotations
 import numpy as np
 
 from .neighbors import kd_tree
+
+_PLANES_AGREE_DEG = 10.0  # two planes within this angle interpolate a gap; from twice it, the chord
 
 
 class DataSurface:
@@ -69,10 +76,21 @@ class DataSurface:
         rows = np.arange(len(x))
         n_j = self.normals[idx[rows, j]]
         n_j = np.where((np.einsum("mi,mi->m", n_j, n) < 0)[:, None], -n_j, n_j)
+        # the chord from the nearest to the opposite point, swept along the surface
+        chord = offset[rows, j] - offset[:, 0]
+        chord /= np.maximum(np.linalg.norm(chord, axis=1, keepdims=True), 1e-300)
+        n_c = n + n_j
+        n_c -= np.einsum("mi,mi->m", n_c, chord)[:, None] * chord
+        n_c /= np.maximum(np.linalg.norm(n_c, axis=1, keepdims=True), 1e-300)
+        chord_side = -np.einsum("mi,mi->m", offset[:, 0], n_c)
         a0 = -across[:, 0]                                               # signed plane distances of x
         aj = -np.einsum("mi,mi->m", offset[rows, j], n_j)
         b0 = np.linalg.norm(inplane[:, 0], axis=1)
         bj = np.linalg.norm(inplane[rows, j], axis=1)
-        between = np.abs((bj * a0 + b0 * aj) / np.maximum(b0 + bj, 1e-300))
+        planes_side = (bj * a0 + b0 * aj) / np.maximum(b0 + bj, 1e-300)
+        # the planes where they agree, the chord where they do not (module docstring)
+        tilt = np.degrees(np.arccos(np.clip(np.einsum("mi,mi->m", n, n_j), -1.0, 1.0)))
+        w = np.clip((tilt - _PLANES_AGREE_DEG) / _PLANES_AGREE_DEG, 0.0, 1.0)
+        between = np.abs((1.0 - w) * planes_side + w * chord_side)
         beyond = np.sqrt(a0 ** 2 + np.maximum(b0 - self.reach[first], 0.0) ** 2)
         return np.where(has, between, beyond)
