@@ -119,9 +119,10 @@ def test_data_surface_follows_two_tilted_planes_across_a_gap():
 def test_data_surface_spans_a_missing_run_on_a_curved_bone_by_the_chord():
     """Slices every 1.5 mm over a cylinder of radius 10 mm (a talus-sized curvature), three missing
     (a 6 mm gap), planes fitted at 4 mm as the pipeline does: the rims' planes differ by about 35°,
-    so the gap is spanned by the chord, and on the true surface across it the distance stays within
-    the chord's sagitta, 3² / (2·10) = 0.45 mm. The rims' planes extrapolated into the gap miss it by
-    about twice that (0.87 mm): a rim's fit sees its neighbours on one side only."""
+    so the gap is spanned by the chord, and on the true surface across it the distance stays below
+    0.5 mm: the chord's sagitta, 3² / (2·10) = 0.45 mm, and the fitted normals' error. The rims'
+    planes extrapolated into the gap miss it by 0.87 mm: a rim's fit sees its neighbours on one
+    side only."""
     r = 10.0
     xs = np.arange(-7.5, 7.6, 1.5)
     xs = xs[np.abs(xs) > 2.0]
