@@ -29,6 +29,11 @@ from .neighbors import kd_tree
 _PLANES_AGREE_DEG = 10.0  # two planes within this angle interpolate a gap; from twice it, the chord
 
 
+def _unit(v: np.ndarray) -> np.ndarray:
+    """``v`` (..., 3) scaled to unit length along its last axis (zero rows stay zero)."""
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
+
+
 class DataSurface:
     """The surface through ``points`` (N, 3) with unit ``normals`` (N, 3; zero rows: no plane, sign
     arbitrary), bridging gaps up to ``bridge`` (N,) long (0: none) and reaching ``reach`` (N,) or a
@@ -61,7 +66,7 @@ class DataSurface:
         # to x moved away from it by half the gap length, which finds the next slice across a gap.
         toward = self.points[first] - x
         toward -= np.einsum("mi,mi->m", toward, n)[:, None] * n
-        toward /= np.maximum(np.linalg.norm(toward, axis=1, keepdims=True), 1e-300)
+        toward = _unit(toward)
         _, far = self.tree.query(x - 0.5 * self.bridge[first, None] * toward, k=1, workers=-1)
         idx = np.concatenate([idx, np.asarray(far).reshape(-1, 1)], axis=1)
         offset = self.points[idx] - x[:, None]                           # (M, k + 1, 3)
@@ -77,14 +82,13 @@ class DataSurface:
         n_j = self.normals[idx[rows, j]]
         n_j = np.where((np.einsum("mi,mi->m", n_j, n) < 0)[:, None], -n_j, n_j)
         # the chord from the nearest to the opposite point, swept along the surface
-        chord = offset[rows, j] - offset[:, 0]
-        chord /= np.maximum(np.linalg.norm(chord, axis=1, keepdims=True), 1e-300)
+        off_j = offset[rows, j]
+        chord = _unit(off_j - offset[:, 0])
         n_c = n + n_j
-        n_c -= np.einsum("mi,mi->m", n_c, chord)[:, None] * chord
-        n_c /= np.maximum(np.linalg.norm(n_c, axis=1, keepdims=True), 1e-300)
+        n_c = _unit(n_c - np.einsum("mi,mi->m", n_c, chord)[:, None] * chord)
         chord_side = -np.einsum("mi,mi->m", offset[:, 0], n_c)
         a0 = -across[:, 0]                                               # signed plane distances of x
-        aj = -np.einsum("mi,mi->m", offset[rows, j], n_j)
+        aj = -np.einsum("mi,mi->m", off_j, n_j)
         b0 = np.linalg.norm(inplane[:, 0], axis=1)
         bj = np.linalg.norm(inplane[rows, j], axis=1)
         planes_side = (bj * a0 + b0 * aj) / np.maximum(b0 + bj, 1e-300)
