@@ -8,6 +8,7 @@ directed 95th percentiles (mm).
 
     python benchmarks/bench_reconstruct.py --presets official,fast --devices cpu
     python benchmarks/bench_reconstruct.py --presets fast --input phantom --iters 500
+    python benchmarks/bench_reconstruct.py --presets official --threads 1 --checkpoint bench_out/ckpt
 
 Each configuration runs in a fresh subprocess, so peak host memory (max RSS) is its own.
 """
@@ -49,6 +50,7 @@ def run_one(args: argparse.Namespace) -> list[dict]:
     import torch
 
     import ultraboneudf
+    from ultraboneudf.checkpoints import Checkpoint
 
     torch.set_num_threads(args.threads or torch.get_num_threads())
     points, truth = make_input(args.input)
@@ -56,6 +58,11 @@ def run_one(args: argparse.Namespace) -> list[dict]:
     if args.device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     t0 = time.perf_counter()
+    if args.checkpoint:
+        # a long CPU run (30,000 official steps) spans sessions: resume it where it was killed
+        args.checkpoint.mkdir(parents=True, exist_ok=True)
+        overrides["checkpoint"] = Checkpoint(
+            args.checkpoint / f"{args.input}_{args.preset}_{args.device}_s{args.seed}.pt", every=250, resume=True)
     rec = ultraboneudf.reconstruct(points, preset=args.preset, device=args.device, seed=args.seed,
                                    quiet=not args.verbose, assignments=args.set, **overrides)
     wall = time.perf_counter() - t0
@@ -156,6 +163,8 @@ def main() -> None:
     p.add_argument("--reextract", action="append", default=[], metavar="MODE@DEPTH",
                    help="also extract the same field as e.g. clean@8, faithful@9 or faithful@9@0 "
                         "(the last number: extract.trim_mm; repeatable)")
+    p.add_argument("--checkpoint", type=Path, default=None, metavar="DIR",
+                   help="save each training run's state in DIR every 250 steps and resume from it")
     p.add_argument("--verbose", action="store_true", help="show progress bars")
     p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--preset", help=argparse.SUPPRESS)
@@ -171,7 +180,7 @@ def main() -> None:
             cmd = [sys.executable, __file__, "--one", "--preset", name, "--device", device, "--input", args.input,
                    "--samples", str(args.samples), "--seed", str(args.seed)]
             for flag, value in (("--iters", args.iters), ("--threads", args.threads), ("--save", args.save),
-                                ("--save-field", args.save_field)):
+                                ("--save-field", args.save_field), ("--checkpoint", args.checkpoint)):
                 if value:
                     cmd += [flag, str(value)]
             for spec in args.reextract:
