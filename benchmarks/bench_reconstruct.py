@@ -16,6 +16,7 @@ Each configuration runs in a fresh subprocess, so peak host memory (max RSS) is 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import resource
@@ -60,9 +61,12 @@ def run_one(args: argparse.Namespace) -> list[dict]:
     t0 = time.perf_counter()
     if args.checkpoint:
         # a long CPU run (30,000 official steps) spans sessions: resume it where it was killed
+        # (one file per configuration: a checkpoint of another configuration is refused, not resumed)
         args.checkpoint.mkdir(parents=True, exist_ok=True)
+        tag = hashlib.sha256(json.dumps([args.iters, args.set]).encode()).hexdigest()[:8]
         overrides["checkpoint"] = Checkpoint(
-            args.checkpoint / f"{args.input}_{args.preset}_{args.device}_s{args.seed}.pt", every=250, resume=True)
+            args.checkpoint / f"{args.input}_{args.preset}_{args.device}_s{args.seed}_{tag}.pt", every=250,
+            resume=True)
     rec = ultraboneudf.reconstruct(points, preset=args.preset, device=args.device, seed=args.seed,
                                    quiet=not args.verbose, assignments=args.set, **overrides)
     wall = time.perf_counter() - t0
