@@ -16,7 +16,6 @@ Each configuration runs in a fresh subprocess, so peak host memory (max RSS) is 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import resource
@@ -51,7 +50,7 @@ def run_one(args: argparse.Namespace) -> list[dict]:
     import torch
 
     import ultraboneudf
-    from ultraboneudf.checkpoints import Checkpoint
+    from ultraboneudf.checkpoints import Checkpoint, fingerprint
 
     torch.set_num_threads(args.threads or torch.get_num_threads())
     points, truth = make_input(args.input)
@@ -63,7 +62,7 @@ def run_one(args: argparse.Namespace) -> list[dict]:
         # a long CPU run (30,000 official steps) spans sessions: resume it where it was killed
         # (one file per configuration: a checkpoint of another configuration is refused, not resumed)
         args.checkpoint.mkdir(parents=True, exist_ok=True)
-        tag = hashlib.sha256(json.dumps([args.iters, args.set]).encode()).hexdigest()[:8]
+        tag = fingerprint(args.iters, args.set)[:8]
         overrides["checkpoint"] = Checkpoint(
             args.checkpoint / f"{args.input}_{args.preset}_{args.device}_s{args.seed}_{tag}.pt", every=250,
             resume=True)
