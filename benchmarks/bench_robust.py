@@ -55,17 +55,24 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
     from ultraboneudf import load_mesh
     from ultraboneudf.synth import facing_surface
 
-    tag = cache / f"{bone}_{level}_s{seed}{'_aligned' if align and level in SWEEP_LEVELS else ''}"
+    mesh = load_mesh(BONES / f"{bone}.ply")
+    tag = f"{bone}_{level}_s{seed}"
+    if level in SWEEP_LEVELS:
+        from ultraboneudf.synth.simulator import config_with_noise, truth_beam_spacing
+
+        sim_cfg = config_with_noise(SWEEP_LEVELS[level], seed=seed)
+        # the truth's beam spacing names the cache, so a truth sampled by another rule is not reused
+        tag += f"{'_aligned' if align else ''}_beam{truth_beam_spacing(mesh, sim_cfg):.4f}"
+    tag = cache / tag
     if (tag / "points.npz").exists():
         data = np.load(tag / "points.npz")
         probe = data["probe"] if data["probe"].size else None
         return data["points"], probe, load_mesh(tag / "truth.ply")
-    mesh = load_mesh(BONES / f"{bone}.ply")
     if level in SWEEP_LEVELS:
         from ultraboneudf.sweep import sweep_to_points
-        from ultraboneudf.synth.simulator import config_with_noise, simulate_sweep
+        from ultraboneudf.synth.simulator import simulate_sweep
 
-        sim = simulate_sweep(mesh, config_with_noise(SWEEP_LEVELS[level], seed=seed))
+        sim = simulate_sweep(mesh, sim_cfg)
         cp = sweep_to_points(sim.sweep, segment="masks")
         if align:
             from ultraboneudf.sweep import align_frames

@@ -65,6 +65,17 @@ def test_visible_truth(sim, capsule):
     assert surface_coverage(vis, cp.points, radius_mm=1.0) > 0.9
 
 
+def test_visible_truth_does_not_depend_on_the_tessellation(capsule):
+    # The same capsule with faces half as large: the visible surface is the same surface, so its
+    # area and its connectedness must not change (beams coarser than the faces would miss faces of
+    # the steep sides and leave islands).
+    cfg = small()
+    coarse = simulate_sweep(capsule, cfg).visible_mesh
+    fine = simulate_sweep(capsule.subdivide(), cfg).visible_mesh
+    assert fine.area == pytest.approx(coarse.area, rel=0.01)
+    assert len(fine.split(only_watertight=False)) == 1
+
+
 def test_tracking_noise_is_small_and_present(sim):
     true, rec = sim.true_image_to_world, sim.sweep.image_to_world
     shift = np.linalg.norm(true[:, :3, 3] - rec[:, :3, 3], axis=1)

@@ -88,7 +88,9 @@ class SimulationConfig:
     missing_run_mm: float = 4.0
     """Length of each missing run along the sweep."""
     gt_step_mm: float = 0.25
-    """Pose interpolation step of the visible-truth pass."""
+    """Largest spacing of the visible-truth pass's beams, across the image and along the sweep
+    (poses interpolated between frames); on a mesh with fine faces the beams are spaced a sixth of
+    its median edge instead (:func:`~ultraboneudf.synth.simulator.truth_beam_spacing`)."""
     seed: int = 0
     """Random seed: the same mesh, config and seed give the same sweep."""
 
