@@ -10,9 +10,11 @@ few wrong slices do not tilt it.
 A neighbourhood inside one slice is a noisy line, and its best plane is the image plane, not the
 surface. A fit is therefore accepted only when the neighbours spread in both directions of the
 plane (``λ_mid ≥ 0.2·λ_max``) and, where the viewing direction of each point is known (a sweep:
-probe → point), when the plane faces the probe (incidence below 80°: the bone returns no echo
-beyond that). Points whose fit is refused at the first radius are fitted again at twice and four
-times it: sparse slices need a wider neighbourhood to see their neighbours.
+probe → point), when the plane faces the probe within 60°: bone that steep returns little
+echo, while a streak of false echoes beneath the bone, seen along the beam, makes exactly such
+steep planes, and a field that followed them would raise walls across the surface. Points whose
+fit is refused at the first radius are fitted again at twice and four times it: sparse slices
+need a wider neighbourhood to see their neighbours.
 
 From the fit:
 
@@ -45,7 +47,7 @@ from .voxel import voxel_downsample
 _ROBUST_ROUNDS = 2
 _ROBUST_SCALE = 2.0      # a neighbour's weight is exp(−½ (r / (2·spread))²)
 _SPAN = 0.2              # accept a plane only if λ_mid ≥ this × λ_max (not a line)
-_MAX_INCIDENCE_COS = float(np.cos(np.radians(80.0)))
+_MAX_INCIDENCE_COS = float(np.cos(np.radians(60.0)))
 _MIN_NEIGHBORS = 6
 _SPARSE = 0.1            # fewer neighbours than this × the median: isolated (a rim has about ½)
 _WIDER = (1.0, 2.0, 4.0)  # radii tried, in units of the first
