@@ -583,7 +583,7 @@ DEFAULT_PRESET = "robust"
 
 PRESET_HELP = {
     "robust": "the default: noisy, gappy, slice-structured ultrasound points with false echoes; "
-              "about 30 s for 50,000 points on a 2-core CPU",
+              "about a minute for 50,000 points on a 2-core CPU",
     "fast": "robust without the noise handling: clean, dense clouds (e.g. sampled from a mesh)",
     "official": "the public reference code reproduced, deviations included (a GPU run: about an hour "
                 "on a 2-core CPU)",
