@@ -128,7 +128,8 @@ def run_one(method: str, points, probe, truth, args: argparse.Namespace) -> tupl
     return row, rec.mesh
 
 
-COLUMNS = ["bone", "level", "method", "cd_mm", "hd95_mm", "cd_pgt_mm", "hd95_pgt_mm", "area", "loops", "nm", "far", "time_s"]
+COLUMNS = ["bone", "level", "method", "cd_mm", "hd95_mm", "cd_pgt_mm", "hd95_pgt_mm", "area", "loops", "nm",
+           "far", "time_s"]
 
 
 def print_table(rows: list[dict]) -> None:
