@@ -27,8 +27,9 @@ no input point comes near, e.g. steep faces whose echoes the segmentation droppe
 
 Rows are appended to ``--json`` as they finish (JSON lines); a rerun skips the rows already there
 (same bone, level, seed, method, preset, iterations and ``--set``), so a killed run resumes.
-Simulated inputs are cached under ``--cache``. ``--pictures`` renders each input's meshes coloured
-by their distance to the truth (one column per method).
+Simulated inputs are cached under ``--cache`` (the sweep's points before its frames are registered,
+which runs again each time, so a change to that step is measured). ``--pictures`` renders each
+input's meshes coloured by their distance to the truth (one column per method).
 """
 
 from __future__ import annotations
@@ -50,14 +51,20 @@ LEVELS = "clean,moderate,hard,open,e6-0.5,e6-1.0,e6-1.5,e6-2.0"
 
 
 def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True):
-    """(points (N, 3) mm, probe positions (N, 3) mm or None, truth mesh) of one bone at one level,
-    read from ``cache`` when an earlier run made it; ``align``: the sweep's frames registered to
-    their neighbours, as ``reconstruct SWEEP`` does (``--no-align-frames``: not)."""
+    """(points (N, 3) mm, probe positions (N, 3) mm or None, truth mesh) of one bone at one level;
+    ``align``: the sweep's frames registered to their neighbours, as ``reconstruct SWEEP`` does
+    (``--no-align``: not).
+
+    ``cache`` keeps what the simulator made (the compounded points with their provenance, and the
+    truth), so that a later run skips the simulation; the frames are registered on every run, since
+    that is the pipeline's own step and its code may have changed since the cache was written."""
     import trimesh
 
     from ultraboneudf import load_mesh
     from ultraboneudf.synth import facing_surface
 
+    if level not in SWEEP_LEVELS and level != "open" and not level.startswith("e6-"):
+        raise SystemExit(f"unknown level {level!r}; choose from {LEVELS}")
     mesh = load_mesh(BONES / f"{bone}.ply")
     tag = f"{bone}_{level}_s{seed}"
     if level in SWEEP_LEVELS:
@@ -65,35 +72,39 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
 
         sim_cfg = config_with_noise(SWEEP_LEVELS[level], seed=seed)
         # the truth's beam spacing names the cache, so a truth sampled by another rule is not reused
-        tag += f"{'_aligned' if align else ''}_beam{truth_beam_spacing(mesh, sim_cfg):.4f}"
+        tag += f"_sweep_beam{truth_beam_spacing(mesh, sim_cfg):.4f}"
     tag = cache / tag
-    if (tag / "points.npz").exists():
-        data = np.load(tag / "points.npz")
-        probe = data["probe"] if data["probe"].size else None
-        return data["points"], probe, load_mesh(tag / "truth.ply")
-    if level in SWEEP_LEVELS:
-        from ultraboneudf.sweep import sweep_to_points
-        from ultraboneudf.synth.simulator import simulate_sweep
+    if not (tag / "points.npz").exists():
+        tag.mkdir(parents=True, exist_ok=True)
+        if level in SWEEP_LEVELS:
+            from dataclasses import asdict
 
-        sim = simulate_sweep(mesh, sim_cfg)
-        cp = sweep_to_points(sim.sweep, segment="masks")
-        if align:
-            from ultraboneudf.sweep import align_frames
+            from ultraboneudf.sweep import sweep_to_points
+            from ultraboneudf.synth.simulator import simulate_sweep
 
-            cp, _ = align_frames(cp)
-        points, probe, truth = cp.points, cp.probe_position, sim.visible_mesh
-    elif level == "open" or level.startswith("e6-"):
-        truth = facing_surface(mesh, (0.0, 0.0, 1.0))
-        points, probe = trimesh.sample.sample_surface(truth, 100_000, seed=seed)[0], None
-        if level != "open":
-            sigma = float(level[3:])
-            points = points + np.random.default_rng(seed + 1000).normal(0.0, sigma, points.shape)
-    else:
-        raise SystemExit(f"unknown level {level!r}; choose from {LEVELS}")
-    tag.mkdir(parents=True, exist_ok=True)
-    np.savez(tag / "points.npz", points=points, probe=np.zeros(0) if probe is None else probe)
-    truth.export(tag / "truth.ply")
-    return points, probe, truth
+            sim = simulate_sweep(mesh, sim_cfg)
+            truth, arrays = sim.visible_mesh, asdict(sweep_to_points(sim.sweep, segment="masks"))
+        else:
+            truth = facing_surface(mesh, (0.0, 0.0, 1.0))
+            points = trimesh.sample.sample_surface(truth, 100_000, seed=seed)[0]
+            if level != "open":
+                sigma = float(level[3:])
+                points = points + np.random.default_rng(seed + 1000).normal(0.0, sigma, points.shape)
+            arrays = {"points": points}
+        truth.export(tag / "truth.ply")
+        np.savez(tag / "points.npz", **arrays)  # last: its presence marks a complete entry
+    data = dict(np.load(tag / "points.npz"))
+    truth = load_mesh(tag / "truth.ply")
+    if level not in SWEEP_LEVELS:
+        return data["points"], None, truth
+    from ultraboneudf.sweep.compound import CompoundedPoints
+
+    cp = CompoundedPoints(**data)
+    if align:
+        from ultraboneudf.sweep import align_frames
+
+        cp, _ = align_frames(cp)
+    return cp.points, cp.probe_position, truth
 
 
 def run_one(method: str, points, probe, truth, args: argparse.Namespace) -> tuple[dict, object]:
