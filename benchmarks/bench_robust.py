@@ -24,9 +24,14 @@ no input point comes near, e.g. steep faces whose echoes the segmentation droppe
     python benchmarks/bench_robust.py --bones talus --levels clean,hard --preset fast
     python benchmarks/bench_robust.py --json bench_out/robust.jsonl --pictures bench_out/robust_png
     python benchmarks/bench_robust.py --levels hard --methods ultraboneudf --no-align
+    python benchmarks/bench_robust.py --bones talus --levels hard --sim pred_max_incidence_deg=75
+
+``--sim`` changes one simulation option of the sweep levels (the last line: the segmentation keeps
+echoes up to the visible truth's 75° incidence instead of fading them from 60°).
 
 Rows are appended to ``--json`` as they finish (JSON lines); a rerun skips the rows already there
-(same bone, level, seed, method, preset, iterations and ``--set``), so a killed run resumes.
+(same bone, level, seed, method, preset, iterations, ``--set`` and ``--sim``), so a killed run
+resumes.
 Simulated inputs are cached under ``--cache`` (the sweep's points before its frames are registered,
 which runs again each time, so a change to that step is measured). ``--pictures`` renders each
 input's meshes coloured by their distance to the truth (one column per method).
@@ -50,10 +55,11 @@ SWEEP_LEVELS = {"clean": "none", "moderate": "moderate", "hard": "hard"}
 LEVELS = "clean,moderate,hard,open,e6-0.5,e6-1.0,e6-1.5,e6-2.0"
 
 
-def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True):
+def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True,
+               sim: dict | None = None):
     """(points (N, 3) mm, probe positions (N, 3) mm or None, truth mesh) of one bone at one level;
     ``align``: the sweep's frames registered to their neighbours, as ``reconstruct SWEEP`` does
-    (``--no-align``: not).
+    (``--no-align``: not); ``sim``: simulation options over the level's (sweep levels only).
 
     ``cache`` keeps what the simulator made (the compounded points with their provenance, and the
     truth), so that a later run skips the simulation; the frames are registered on every run, since
@@ -70,9 +76,10 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
     if level in SWEEP_LEVELS:
         from ultraboneudf.synth.simulator import config_with_noise, truth_beam_spacing
 
-        sim_cfg = config_with_noise(SWEEP_LEVELS[level], seed=seed)
+        sim_cfg = config_with_noise(SWEEP_LEVELS[level], seed=seed, **(sim or {}))
         # the truth's beam spacing names the cache, so a truth sampled by another rule is not reused
         tag += f"_sweep_beam{truth_beam_spacing(mesh, sim_cfg):.4f}"
+        tag += "".join(f"_{k}{v}" for k, v in sorted((sim or {}).items()))
     tag = cache / tag
     if not (tag / "points.npz").exists():
         tag.mkdir(parents=True, exist_ok=True)
@@ -105,6 +112,23 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
 
         cp, _ = align_frames(cp)
     return cp.points, cp.probe_position, truth
+
+
+def parse_sim(items: list[str]) -> dict:
+    """``--sim KEY=VALUE`` items as simulation options, each of its field's type."""
+    from ultraboneudf.synth.sweep_config import SimulationConfig
+
+    defaults, sim = SimulationConfig(), {}
+    for item in items:
+        name, sep, value = (part.strip() for part in item.partition("="))
+        if not sep or not hasattr(defaults, name) or name == "seed":
+            raise SystemExit(f"--sim {item!r}: expected KEY=VALUE with KEY a simulation option "
+                             "(a field of SimulationConfig other than seed)")
+        try:
+            sim[name] = type(getattr(defaults, name))(value)
+        except ValueError:
+            raise SystemExit(f"--sim {item!r}: {value!r} is not a {type(getattr(defaults, name)).__name__}") from None
+    return sim
 
 
 def run_one(method: str, points, probe, truth, args: argparse.Namespace) -> tuple[dict, object]:
@@ -180,6 +204,9 @@ def main() -> None:
     p.add_argument("--preset", default="robust")
     p.add_argument("--iters", type=int, default=None, help="training steps of every neural method")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",
+                   help="a simulation option over the sweep levels' own (a field of "
+                        "ultraboneudf.synth.SimulationConfig, e.g. pred_max_incidence_deg=75)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulation and of every method")
     p.add_argument("--no-align", action="store_true", help="keep the sweeps' frames as tracked "
@@ -197,16 +224,19 @@ def main() -> None:
     done: list[dict] = []
     if args.json and args.json.exists():
         done = [json.loads(line) for line in args.json.read_text().splitlines() if line.strip()]
+    sim = parse_sim(args.sim)
     rows = []
     for bone in args.bones.split(","):
         for level in args.levels.split(","):
-            points, probe, truth = make_input(bone, level, args.seed, args.cache, not args.no_align)
+            points, probe, truth = make_input(bone, level, args.seed, args.cache, not args.no_align, sim)
             meshes = {}
             for method in args.methods.split(","):
                 key = {"bone": bone, "level": level, "seed": args.seed, "method": method,
                        "preset": args.preset, "iters_override": args.iters, "set": args.set}
                 if level in SWEEP_LEVELS:
                     key["align"] = not args.no_align
+                    if args.sim:
+                        key["sim"] = args.sim
                 old = next((r for r in done if all(r.get(k) == v for k, v in key.items())), None)
                 if old is not None:
                     rows.append(old)
