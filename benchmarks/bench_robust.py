@@ -235,9 +235,10 @@ def main() -> None:
                        "preset": args.preset, "iters_override": args.iters, "set": args.set}
                 if level in SWEEP_LEVELS:
                     key["align"] = not args.no_align
-                    if args.sim:
-                        key["sim"] = args.sim
-                old = next((r for r in done if all(r.get(k) == v for k, v in key.items())), None)
+                    key["sim"] = args.sim
+                # rows written before --sim existed have no "sim": they were made without one
+                old = next((r for r in done if all(r.get(k, [] if k == "sim" else None) == v
+                                                   for k, v in key.items())), None)
                 if old is not None:
                     rows.append(old)
                     continue
