@@ -115,19 +115,17 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
 
 
 def parse_sim(items: list[str]) -> dict:
-    """``--sim KEY=VALUE`` items as simulation options, each of its field's type."""
-    from ultraboneudf.synth.sweep_config import SimulationConfig
+    """``--sim KEY=VALUE`` items as simulation options, parsed as ``ultraboneudf simulate --set``
+    parses them (the seed is the benchmark's own ``--seed``)."""
+    from ultraboneudf.cli.cmd_simulate import parse_assignments
+    from ultraboneudf.errors import InputError
 
-    defaults, sim = SimulationConfig(), {}
-    for item in items:
-        name, sep, value = (part.strip() for part in item.partition("="))
-        if not sep or not hasattr(defaults, name) or name == "seed":
-            raise SystemExit(f"--sim {item!r}: expected KEY=VALUE with KEY a simulation option "
-                             "(a field of SimulationConfig other than seed)")
-        try:
-            sim[name] = type(getattr(defaults, name))(value)
-        except ValueError:
-            raise SystemExit(f"--sim {item!r}: {value!r} is not a {type(getattr(defaults, name)).__name__}") from None
+    try:
+        sim = parse_assignments(items)
+    except InputError as exc:
+        raise SystemExit(f"--sim: {exc}") from None
+    if "seed" in sim:
+        raise SystemExit("--sim: the simulation's seed is --seed")
     return sim
 
 
