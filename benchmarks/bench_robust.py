@@ -32,9 +32,10 @@ echoes up to the visible truth's 75° incidence instead of fading them from 60°
 Rows are appended to ``--json`` as they finish (JSON lines); a rerun skips the rows already there
 (same bone, level, seed, method, preset, iterations, ``--set`` and ``--sim``), so a killed run
 resumes.
-Simulated inputs are cached under ``--cache`` (the sweep's points before its frames are registered,
-which runs again each time, so a change to that step is measured). ``--pictures`` renders each
-input's meshes coloured by their distance to the truth (one column per method).
+Simulated inputs are cached under ``--cache`` (the sweep's points before the front end's outlier
+removal and frame registration, which run again each time, so a change to those steps is
+measured). ``--pictures`` renders each input's meshes coloured by their distance to the truth (one
+column per method).
 """
 
 from __future__ import annotations
@@ -62,8 +63,9 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
     (``--no-align``: not); ``sim``: simulation options over the level's (sweep levels only).
 
     ``cache`` keeps what the simulator made (the compounded points with their provenance, and the
-    truth), so that a later run skips the simulation; the frames are registered on every run, since
-    that is the pipeline's own step and its code may have changed since the cache was written."""
+    truth), so that a later run skips the simulation; the outliers are removed and the frames
+    registered on every run, since those are the front end's own steps and their code may have
+    changed since the cache was written."""
     import trimesh
 
     from ultraboneudf import load_mesh
@@ -79,7 +81,7 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
         sim_cfg = config_with_noise(SWEEP_LEVELS[level], seed=seed, **(sim or {}))
         # the truth's beam spacing names the cache, so a truth sampled by another rule is not reused
         tag += f"_sweep_beam{truth_beam_spacing(mesh, sim_cfg):.4f}"
-        tag += "".join(f"_{k}{v}" for k, v in sorted((sim or {}).items()))
+        tag += "".join(f"_{k}{v}" for k, v in sorted((sim or {}).items())) + "_raw"
     tag = cache / tag
     if not (tag / "points.npz").exists():
         tag.mkdir(parents=True, exist_ok=True)
@@ -90,7 +92,8 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
             from ultraboneudf.synth.simulator import simulate_sweep
 
             sim = simulate_sweep(mesh, sim_cfg)
-            truth, arrays = sim.visible_mesh, asdict(sweep_to_points(sim.sweep, segment="masks"))
+            truth = sim.visible_mesh
+            arrays = asdict(sweep_to_points(sim.sweep, segment="masks", remove_outliers=False))
         else:
             truth = facing_surface(mesh, (0.0, 0.0, 1.0))
             points = trimesh.sample.sample_surface(truth, 100_000, seed=seed)[0]
@@ -105,8 +108,10 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
     if level not in SWEEP_LEVELS:
         return data["points"], None, truth
     from ultraboneudf.sweep.compound import CompoundedPoints
+    from ultraboneudf.sweep.outliers import outlier_mask
 
     cp = CompoundedPoints(**data)
+    cp = cp.subset(outlier_mask(cp.points))  # the front end's default rule, as sweep_to_points has it
     if align:
         from ultraboneudf.sweep import align_frames
 

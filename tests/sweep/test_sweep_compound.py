@@ -10,6 +10,8 @@ from ultraboneudf.sweep import (
     Sweep,
     compound,
     points_from_sweep,
+    local_outlier_mask,
+    outlier_mask,
     statistical_outlier_mask,
     sweep_to_points,
     top_boundary,
@@ -72,6 +74,27 @@ def test_outlier_removal():
     assert not keep_r[-1] and keep_r[:-1].all()
 
 
+def test_local_rule_keeps_a_sparse_surface_and_drops_echoes_beside_a_dense_one():
+    # a dense surface (0.25 mm) and, 5 mm beyond it, a face seen by a quarter of the beams
+    # along each axis (1 mm): the local rule keeps both and drops three echoes 1.5-3 mm off the
+    # dense surface; the statistical rule drops the sparse face with them
+    g = np.stack(np.meshgrid(np.arange(0, 10, 0.25), np.arange(0, 10, 0.25), indexing="ij"), -1).reshape(-1, 2)
+    dense = np.column_stack([g, np.zeros(len(g))])
+    s, y = np.meshgrid(np.arange(0.0, 8.0), np.arange(0.0, 10.0), indexing="ij")
+    sparse = np.column_stack([15 + s.ravel() * np.cos(1.2), y.ravel(), -s.ravel() * np.sin(1.2)])
+    echoes = np.array([[5, 5, -2.0], [2, 7, -3.0], [7, 3, 1.5]])
+    pts = np.vstack([dense, sparse, echoes])
+    n_dense, n_surface = len(dense), len(dense) + len(sparse)
+    local = local_outlier_mask(pts, k=16, factor=1.5)
+    assert local[:n_surface].all() and not local[n_surface:].any()
+    np.testing.assert_array_equal(outlier_mask(pts), local)
+    statistical = outlier_mask(pts, "statistical", k=16, std_ratio=2.0)
+    assert statistical[:n_dense].all() and not statistical[n_dense:].any()
+    with pytest.raises(ValueError, match="unknown outlier rule"):
+        outlier_mask(pts, "median")
+    assert local_outlier_mask(pts[:10], k=16).all()  # too few points to judge
+
+
 def test_sweep_to_points_and_points_from_sweep(tmp_path):
     s = plane_sweep(n=30, w=40, h=20)
     s.masks[:, 10, 5:35] = True  # a flat "bone" 5 mm deep
@@ -84,6 +107,9 @@ def test_sweep_to_points_and_points_from_sweep(tmp_path):
     np.testing.assert_allclose(cp.points[:, 1], 5.25)
     pts = points_from_sweep(tmp_path / "sw", top_only=False, remove_outliers=False)
     assert pts.shape == (30 * 30 * 4 + 1, 3) and pts.dtype == np.float64
+    assert len(sweep_to_points(tmp_path / "sw", outlier_rule="statistical")) == 30 * 30 - 1
+    with pytest.raises(InputError, match="unknown outlier rule"):
+        sweep_to_points(tmp_path / "sw", outlier_rule="median")
     every3 = sweep_to_points(tmp_path / "sw", frame_step=3)
     assert set(np.unique(every3.frame_index)) == set(range(0, 30, 3))
 
@@ -133,3 +159,20 @@ def test_cli_rejects_unknown_output_suffix(tmp_path, capsys):
     write_sweep(s.replace(images=None), tmp_path / "sw", write_images=False)
     code = main(["sweep2points", str(tmp_path / "sw"), "-o", str(tmp_path / "p.vtk"), "--quiet"])
     assert code == 2 and "p.vtk" in capsys.readouterr().err
+
+
+def test_cli_sweep2points_outlier_options(tmp_path, capsys):
+    s = plane_sweep(n=20, w=30, h=16)
+    s.masks[:, 8, 3:27] = True
+    s.masks[7, 2, 20] = True  # a stray pixel on one frame
+    write_sweep(s.replace(images=None), tmp_path / "sw", write_images=False)
+    out = tmp_path / "pts.npy"
+    for rule in ("local", "statistical"):
+        assert main(["sweep2points", str(tmp_path / "sw"), "-o", str(out), "--quiet",
+                     "--outlier-rule", rule]) == 0
+        assert load_points(out).shape == (479, 3)
+    assert main(["sweep2points", str(tmp_path / "sw"), "-o", str(out), "--quiet", "--no-outliers"]) == 0
+    assert load_points(out).shape == (480, 3)
+    capsys.readouterr()
+    code = main(["sweep2points", str(tmp_path / "sw"), "-o", str(out), "--quiet", "--outlier-factor", "1"])
+    assert code == 2 and "--outlier-factor" in capsys.readouterr().err

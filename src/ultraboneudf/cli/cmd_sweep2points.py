@@ -27,10 +27,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--all-pixels", action="store_true",
                    help="keep every mask pixel (default: only the top boundary of each scan line, "
                         "the bone surface)")
-    p.add_argument("--no-outliers", action="store_true", help="skip statistical outlier removal")
+    p.add_argument("--no-outliers", action="store_true", help="skip outlier removal")
+    p.add_argument("--outlier-rule", choices=("local", "statistical"), default="local",
+                   help="outlier removal: 'local' (default) drops points much sparser than their "
+                        "neighbours (local outlier factor) and keeps the sparse echoes of steep faces; "
+                        "'statistical' drops points whose mean neighbour distance is far above the "
+                        "cloud's")
     p.add_argument("--outlier-k", type=int, default=16, help="outlier removal: neighbours (default 16)")
+    p.add_argument("--outlier-factor", type=float, default=1.5,
+                   help="local rule: largest local outlier factor kept (default 1.5)")
     p.add_argument("--outlier-std", type=float, default=2.0,
-                   help="outlier removal: threshold in standard deviations (default 2.0)")
+                   help="statistical rule: threshold in standard deviations (default 2.0)")
     p.add_argument("--frame-step", type=int, default=1, help="use every N-th frame (default 1)")
     p.add_argument("--overlays", type=Path, default=None,
                    help="also write segmentation overlay contact sheets (PNG) to this folder")
@@ -66,9 +73,13 @@ def run(args: argparse.Namespace) -> int:
                          f"{', '.join(POINT_SUFFIXES)}")
     if args.frame_step < 1:
         raise InputError(f"--frame-step must be ≥ 1, got {args.frame_step}")
+    if args.outlier_k < 1 or args.outlier_factor <= 1.0:
+        raise InputError(f"--outlier-k must be ≥ 1 and --outlier-factor > 1 (a surface's points have a "
+                         f"factor of about 1), got {args.outlier_k} and {args.outlier_factor:g}")
     res = sweep_points(args.sweep, args, progress, top_only=not args.all_pixels,
-                       remove_outliers=not args.no_outliers, outlier_k=args.outlier_k,
-                       outlier_std=args.outlier_std, frame_step=args.frame_step)
+                       remove_outliers=not args.no_outliers, outlier_rule=args.outlier_rule,
+                       outlier_k=args.outlier_k, outlier_std=args.outlier_std,
+                       outlier_factor=args.outlier_factor, frame_step=args.frame_step)
     cp, sweep = res.points, res.sweep
     atomic_write_bytes(out, encode_points(out, cp))
     frames_with_bone = len(np.unique(cp.frame_index))

@@ -122,8 +122,8 @@ class SweepPoints:
 
 
 def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, top_only: bool = True,
-                 remove_outliers: bool = True, outlier_k: int = 16, outlier_std: float = 2.0,
-                 frame_step: int = 1) -> SweepPoints:
+                 remove_outliers: bool = True, outlier_rule: str = "local", outlier_k: int = 16,
+                 outlier_std: float = 2.0, outlier_factor: float = 1.5, frame_step: int = 1) -> SweepPoints:
     """Read a sweep with the command line's options, segment its bone and compound the points.
 
     Raises :class:`InputError` (one line, naming the file) for a sweep without 3-D extent, for no
@@ -187,10 +187,13 @@ def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, to
         raise InputError(f"{path}: no bone found in any of the {sweep.n_frames} frames "
                          f"(segmentation: {method}{why})")
     cp = sweep_to_points(sweep.with_masks(masks), segment="masks", top_only=top_only,
-                         remove_outliers=remove_outliers, outlier_k=outlier_k,
-                         outlier_std=outlier_std, progress=progress)
+                         remove_outliers=remove_outliers, outlier_rule=outlier_rule, outlier_k=outlier_k,
+                         outlier_std=outlier_std, outlier_factor=outlier_factor, progress=progress)
     if frame_step > 1:
         cp.frame_index = cp.frame_index * frame_step
+    info["outlier_removal"] = None if not remove_outliers else {
+        "rule": outlier_rule, "k": outlier_k,
+        **({"factor": outlier_factor} if outlier_rule == "local" else {"std_ratio": outlier_std})}
     if not args.no_align_frames:
         cp, report = align_frames(cp)
         info["alignment"] = report.as_dict()

@@ -20,7 +20,7 @@ from .calibration import Calibration, read_calibration
 from .compound import CompoundedPoints, compound, top_boundary
 from .learned import LearnedSegmenter, load_model
 from .model import Sweep, SweepWarning
-from .outliers import radius_outlier_mask, statistical_outlier_mask
+from .outliers import local_outlier_mask, outlier_mask, radius_outlier_mask, statistical_outlier_mask
 from .points import points_from_sweep, segment_sweep, sweep_to_points
 from .formats import LAYOUTS, detect_layout, is_sweep_path, read_sweep, write_sweep
 from .segment import BoneDetector, segment_bone
@@ -29,7 +29,8 @@ from .transforms import check_rigid, pixels_to_world, rigid_from_euler
 __all__ = [
     "Sweep", "SweepWarning", "read_sweep", "read_calibration", "Calibration", "classical_bone_masks", "write_sweep", "detect_layout", "is_sweep_path", "LAYOUTS",
     "BoneDetector", "segment_bone", "LearnedSegmenter", "load_model", "segment_sweep",
-    "CompoundedPoints", "compound", "top_boundary", "statistical_outlier_mask", "radius_outlier_mask",
+    "CompoundedPoints", "compound", "top_boundary", "outlier_mask", "local_outlier_mask",
+    "statistical_outlier_mask", "radius_outlier_mask",
     "sweep_to_points", "points_from_sweep", "rigid_from_euler", "check_rigid", "pixels_to_world",
     "align_frames", "AlignmentReport",
 ]

@@ -18,7 +18,7 @@ from ..progress import QUIET, Progress
 from .compound import CompoundedPoints, compound
 from .learned import LearnedSegmenter, is_model_path
 from .model import Sweep
-from .outliers import statistical_outlier_mask
+from .outliers import OUTLIER_RULES, outlier_mask
 from .formats import read_sweep
 from .bone import classical_bone_masks
 from .segment import BoneDetector
@@ -63,8 +63,9 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
                     masks: str | os.PathLike | np.ndarray | None = None,
                     detector: Mapping[str, Any] | BoneDetector | None = None,
                     model_options: Mapping[str, Any] | None = None,
-                    top_only: bool = True, remove_outliers: bool = True, outlier_k: int = 16,
-                    outlier_std: float = 2.0, frame_step: int = 1,
+                    top_only: bool = True, remove_outliers: bool = True, outlier_rule: str = "local",
+                    outlier_k: int = 16, outlier_std: float = 2.0, outlier_factor: float = 1.5,
+                    frame_step: int = 1,
                     progress: Progress = QUIET, **read_options: Any) -> CompoundedPoints:
     """Tracked sweep → bone points in world mm, with per-point provenance.
 
@@ -77,13 +78,18 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
         detector: :class:`BoneDetector` or its options (``{field: value}``, lengths in mm).
         model_options: options of :class:`LearnedSegmenter` (``threshold``, ``input_size``, …).
         top_only: keep only the shallowest mask pixel of each scan line (the bone surface).
-        remove_outliers: statistical outlier removal (``outlier_k`` neighbours, ``outlier_std``).
+        remove_outliers: drop isolated false detections (:func:`~.outliers.outlier_mask`):
+            ``outlier_rule`` ``local`` (local outlier factor over ``outlier_k`` neighbours at least
+            ``outlier_factor``; keeps the sparse echoes of steep faces) or ``statistical`` (mean
+            neighbour distance beyond ``outlier_std`` standard deviations).
         frame_step: use every ``frame_step``-th frame.
         progress: progress reporter.
 
     Raises:
         InputError: naming the file, for unreadable sweeps, bad masks, or no bone found at all.
     """
+    if outlier_rule not in OUTLIER_RULES:
+        raise InputError(f"unknown outlier rule {outlier_rule!r}; choose one of {', '.join(OUTLIER_RULES)}")
     if not isinstance(sweep, Sweep):
         if isinstance(masks, (str, os.PathLike)):
             read_options["masks"] = masks
@@ -111,7 +117,7 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
         raise InputError(f"{sweep.source or 'sweep'}: no bone found in any of the {sweep.n_frames} "
                          f"frames (segmentation: {method})")
     if remove_outliers and len(cp) > outlier_k + 1:
-        cp = cp.subset(statistical_outlier_mask(cp.points, outlier_k, outlier_std))
+        cp = cp.subset(outlier_mask(cp.points, outlier_rule, outlier_k, outlier_std, outlier_factor))
     if frame_step > 1:  # report frame indices of the original sweep
         cp.frame_index = cp.frame_index * int(frame_step)
     progress.log(f"{len(cp)} bone points from {sweep.n_frames} frames ({method})")
