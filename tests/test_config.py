@@ -127,6 +127,14 @@ def test_modes_checked_on_construction_and_before_a_run():
     cfg.grid.resolution = 1           # checked before training, not when the grid extractor runs
     with pytest.raises(InputError, match=r"grid.resolution=1 \(at least 2\)"):
         validate(cfg)
+    cfg = preset("robust")
+    cfg.extract.trim_normal_mm = -1.0
+    with pytest.raises(InputError, match=r"extract.trim_normal_mm=-1.0 \(finite and 0 or more\)"):
+        validate(cfg)
+    cfg = preset("fast")
+    cfg.extract.trim_normal_mm = 1.0  # the fast preset fits no local planes to measure along
+    with pytest.raises(InputError, match="extract.trim_normal_mm needs the local planes"):
+        validate(cfg)
 
 
 def test_every_field_has_a_docstring_and_the_config_command_prints_it(capsys):

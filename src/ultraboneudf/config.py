@@ -315,6 +315,13 @@ class ExtractConfig(_Section):
     0 = off (the reference). It removes zero sets the field keeps away from the data (a sheet
     continued past the rim of an open surface, remnants of the initial sphere); a gap in the data
     wider than about twice this value opens as a hole."""
+    trim_normal_mm: float = 0.0
+    """A second support trim, along the data's surface normal: drop the faces whose mean vertex
+    distance from the surface of the local planes (``data.surface_fit_mm``), measured along its
+    normal, is ≥ this many mm; 0 = off. A noisy band of points leaves shallow minima in the field
+    that the extractor meshes as sheets a millimetre or two under or over the bone, which the
+    distance rule of ``trim_mm`` keeps; a surface continued in its own plane past a rim is not
+    affected."""
     min_leaf_mm: float = 0.0
     """Leaves no smaller than this (mm): the octree depth is lowered from ``max_depth`` until the leaf
     edge reaches it, so a small bone is not meshed at a resolution finer than the data resolve (a
@@ -542,7 +549,8 @@ def _robust() -> Config:
     between the points across gaps up to the plane's radius, instead of the distance to the nearest
     point, which between slices lies beside the query rather than under it; past the data's rims
     that surface goes on for half the plane radius (2 mm), where an oblique echo faded. The support
-    trim measures to the bridged surface, so bridged gaps stay closed. ``L_OS`` on 256 surface points
+    trim measures to the bridged surface, so bridged gaps stay closed, and also drops the faces 1 mm
+or more from it along its normal (sheets the noise band leaves under or over the bone). ``L_OS`` on 256 surface points
     a step pins the zero level to the data where few frames saw the bone and the tangent phase alone
     leaves the field above zero there. Leaves are kept ≥ 0.75 mm, so a small bone is not meshed
     finer than its data resolve (docs/robustness.md measures each part)."""
@@ -557,6 +565,7 @@ def _robust() -> Config:
     cfg.loss.lambda_os = 10.0
     cfg.loss.os_rows = 256
     cfg.extract.min_leaf_mm = 0.75
+    cfg.extract.trim_normal_mm = 1.0
     return cfg
 
 
@@ -746,11 +755,13 @@ def validate(cfg: Config, trains: bool = True) -> Config:
     need(1 <= e.max_depth <= MAX_DEPTH, "extract.max_depth", f"between 1 and {MAX_DEPTH}")
     need(cfg.grid.resolution >= 2, "grid.resolution", "at least 2")
     for key in ("data.voxel_size_mm", "data.surface_fit_mm", "data.bridge", "data.rim_reach",
-                "data.shadow_mm", "data.outlier_sigmas", "extract.trim_mm", "extract.fit_mm",
-                "extract.min_leaf_mm"):
+                "data.shadow_mm", "data.outlier_sigmas", "extract.trim_mm", "extract.trim_normal_mm",
+                "extract.fit_mm", "extract.min_leaf_mm"):
         section, name = key.split(".")
         value = getattr(getattr(cfg, section), name)
         need(math.isfinite(value) and value >= 0, key, "finite and 0 or more")
+    if e.trim_normal_mm > 0 and d.surface_fit_mm <= 0:
+        problems.append("extract.trim_normal_mm needs the local planes: set data.surface_fit_mm > 0")
     need(d.denoise >= 0, "data.denoise", "0 or more passes")
     need(d.max_voxels >= 0, "data.max_voxels", "0 (no limit) or more")
     need(lo.gs_anchors >= 0, "loss.gs_anchors", "0 (all) or more")

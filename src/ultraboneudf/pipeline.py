@@ -419,7 +419,8 @@ class FittedSurface:
                                      normals=self.fitted.normals, clean=clean, grid=grid)
         else:
             unit_mesh = None
-        mesh, trimmed = _trim_and_map(unit_mesh, self.support, self.normalizer, cfg.trim_mm)
+        mesh, trimmed = _trim_and_map(unit_mesh, self.support, self.normalizer, cfg.trim_mm,
+                                      cfg.trim_normal_mm)
         return mesh, trimmed, cfg
 
 
@@ -485,20 +486,23 @@ def resolve_leaf_size(cfg: ExtractConfig, normalizer: Normalizer) -> ExtractConf
 
 
 def _support(points: np.ndarray, planes: LocalPlanes | None, bridge: float) -> np.ndarray | DataSurface:
-    """The support trim's reference: the unit-space points, or with ``data.bridge`` > 0 (and local
-    planes) the surface bridged across their gaps."""
-    if planes is None or bridge <= 0:
+    """The support trim's reference: the unit-space points, or with local planes the surface
+    through them, bridged across their gaps with ``data.bridge`` > 0 (its distance is the distance
+    to the nearest point without; its normals serve ``extract.trim_normal_mm``)."""
+    if planes is None:
         return points
-    return DataSurface(points, planes.normal, bridge * planes.gap)
+    return DataSurface(points, planes.normal, max(bridge, 0.0) * planes.gap)
 
 
 def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, normalizer: Normalizer,
-                  trim_mm: float) -> tuple[trimesh.Trimesh | None, int]:
-    """The support trim (``extract.trim_mm``, against the unit-space ``support``), then the one
-    map back to mm. Returns the mesh in mm (``None`` when nothing is left) and the faces removed."""
+                  trim_mm: float, trim_normal_mm: float = 0.0) -> tuple[trimesh.Trimesh | None, int]:
+    """The support trim (``extract.trim_mm`` and ``extract.trim_normal_mm``, against the unit-space
+    ``support``), then the one map back to mm. Returns the mesh in mm (``None`` when nothing is
+    left) and the faces removed."""
     if unit_mesh is None:
         return None, 0
-    trimmed = trim_to_support(unit_mesh, support, trim_mm / normalizer.scale)
+    trimmed = trim_to_support(unit_mesh, support, trim_mm / normalizer.scale,
+                              trim_normal_mm / normalizer.scale)
     removed = len(unit_mesh.faces) - (0 if trimmed is None else len(trimmed.faces))
     return (None if trimmed is None else normalizer.inverse_mesh(trimmed)), removed
 

@@ -46,3 +46,27 @@ def test_trim_of_a_mesh_far_from_all_data_gives_none(disc_support):
     far = plane(half=0.2)
     far.vertices[:, 2] += 5.0
     assert trim_to_support(far, disc_support, 0.1) is None
+
+
+def test_normal_trim_drops_a_parallel_sheet_but_keeps_the_rim_continuation():
+    """Data on the square [−1, 1]² at z = 0 with upward planes. The mesh: the plane z = 0 over
+    [−1.4, 1.4]² (0.4 past the data's rim in its own plane) and a sheet z = −0.3 under the data.
+    The distance rule at 0.6 keeps both (the corners lie 0.57 from the data); along the normal at
+    0.2 the sheet goes (0.3 from the data along the normal) and the rim continuation stays (0)."""
+    from ultraboneudf.geometry.support import DataSurface
+
+    a = np.linspace(-1.0, 1.0, 41)
+    xx, yy = np.meshgrid(a, a, indexing="ij")
+    data = np.c_[xx.ravel(), yy.ravel(), np.zeros(xx.size)]
+    surface = DataSurface(data, np.tile([0.0, 0.0, 1.0], (len(data), 1)), bridge=np.zeros(len(data)))
+    top = plane(n=57, half=1.4)
+    sheet = plane(n=21, half=0.5)
+    sheet.vertices[:, 2] = -0.3
+    mesh = trimesh.util.concatenate([top, sheet])
+    assert trim_to_support(mesh, surface, 0.6) is mesh
+    out = trim_to_support(mesh, surface, 0.6, max_normal=0.2)
+    assert out.area == pytest.approx(top.area, rel=1e-9)
+    assert np.abs(out.vertices[:, 2]).max() == 0.0
+    # the normal rule alone, and no effect against bare points (no normals to measure along)
+    assert trim_to_support(mesh, surface, 0.0, max_normal=0.2).area == pytest.approx(top.area, rel=1e-9)
+    assert trim_to_support(mesh, data, 0.6, max_normal=0.2) is mesh

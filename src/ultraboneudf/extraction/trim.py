@@ -17,28 +17,36 @@ from ..geometry.neighbors import kd_tree
 from ..geometry.support import DataSurface
 
 
-def unsupported_faces(mesh: trimesh.Trimesh, support: np.ndarray | DataSurface, max_distance: float
-                      ) -> np.ndarray:
+def unsupported_faces(mesh: trimesh.Trimesh, support: np.ndarray | DataSurface, max_distance: float,
+                      max_normal: float = 0.0) -> np.ndarray:
     """(F,) bool: the faces of ``mesh`` whose mean vertex distance to ``support`` is ≥
-    ``max_distance`` (same units as the mesh) — the support-trim rule. ``support``: points (N, 3)
-    (distance to the nearest one) or a :class:`~ultraboneudf.geometry.support.DataSurface`
-    (distance to the surface bridged across the data's gaps)."""
+    ``max_distance`` (same units as the mesh; ≤ 0: no limit) — the support-trim rule. ``support``:
+    points (N, 3) (distance to the nearest one) or a
+    :class:`~ultraboneudf.geometry.support.DataSurface` (distance to the surface bridged across the
+    data's gaps); with a ``DataSurface`` and ``max_normal`` > 0, also the faces whose mean vertex
+    distance along the surface's normal is ≥ ``max_normal``."""
     if isinstance(support, DataSurface):
-        dist = support.distance(mesh.vertices)
+        dist, normal = support.distances(mesh.vertices)
     else:
         dist, _ = kd_tree(support).query(mesh.vertices, k=1, workers=-1)
-    return dist[mesh.faces].mean(axis=1) >= max_distance
+        normal = None
+    out = np.zeros(len(mesh.faces), dtype=bool)
+    if max_distance > 0:
+        out |= dist[mesh.faces].mean(axis=1) >= max_distance
+    if normal is not None and max_normal > 0:
+        out |= normal[mesh.faces].mean(axis=1) >= max_normal
+    return out
 
 
-def trim_to_support(mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, max_distance: float
-                    ) -> trimesh.Trimesh | None:
-    """``mesh`` without the faces whose mean vertex distance to ``support`` (points (N, 3) or a
-    :class:`~ultraboneudf.geometry.support.DataSurface`) is ≥ ``max_distance`` (same units as the
-    mesh), and without the vertices no face uses any more. ``max_distance ≤ 0`` returns ``mesh``
-    unchanged; ``None`` when no face is left."""
-    if mesh is None or max_distance <= 0:
+def trim_to_support(mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, max_distance: float,
+                    max_normal: float = 0.0) -> trimesh.Trimesh | None:
+    """``mesh`` without the faces of :func:`unsupported_faces` (mean vertex distance to ``support``
+    ≥ ``max_distance``, or along a ``DataSurface``'s normal ≥ ``max_normal``; same units as the mesh)
+    and without the vertices no face uses any more. Both limits ≤ 0 return ``mesh`` unchanged;
+    ``None`` when no face is left."""
+    if mesh is None or (max_distance <= 0 and max_normal <= 0):
         return mesh
-    keep = ~unsupported_faces(mesh, support, max_distance)
+    keep = ~unsupported_faces(mesh, support, max_distance, max_normal)
     if keep.all():
         return mesh
     if not keep.any():

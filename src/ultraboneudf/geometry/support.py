@@ -18,6 +18,11 @@ the two rims' planes extrapolated to the middle of the gap miss the bone there b
 chord's sagitta. Elsewhere — beyond the rim of an open surface, or with no plane — it is the
 distance to a disc of radius ``reach`` around the nearest point in its plane (0: the point itself).
 So gaps up to ``bridge`` close, and rims stay within ``reach`` of where the data end.
+
+:meth:`DataSurface.distances` also gives the part of that distance along the surface's normal: over
+a gap the same distance, elsewhere the height above the nearest point's plane (0 where it has no
+plane). A sheet that runs parallel to the data a millimetre under them is far along the normal; a
+surface continued in its own plane past a rim is not.
 """
 
 from __future__ import annotations
@@ -51,13 +56,18 @@ class DataSurface:
 
     def distance(self, x: np.ndarray, chunk: int = 65_536) -> np.ndarray:
         """(M,) distance from each row of ``x`` (M, 3) to the surface (see the module docstring)."""
-        x = np.asarray(x, dtype=np.float64)
-        out = np.empty(len(x))
-        for start in range(0, len(x), chunk):
-            out[start:start + chunk] = self._distance(x[start:start + chunk])
-        return out
+        return self.distances(x, chunk)[0]
 
-    def _distance(self, x: np.ndarray) -> np.ndarray:
+    def distances(self, x: np.ndarray, chunk: int = 65_536) -> tuple[np.ndarray, np.ndarray]:
+        """The distance (M,) from each row of ``x`` (M, 3) to the surface, and its part (M,) along the
+        surface's normal (see the module docstring)."""
+        x = np.asarray(x, dtype=np.float64)
+        total, normal = np.empty(len(x)), np.empty(len(x))
+        for start in range(0, len(x), chunk):
+            total[start:start + chunk], normal[start:start + chunk] = self._distances(x[start:start + chunk])
+        return total, normal
+
+    def _distances(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         dist, idx = self.tree.query(x, k=self.k, workers=-1)
         dist, idx = dist.reshape(len(x), self.k), idx.reshape(len(x), self.k)
         first = idx[:, 0]
@@ -97,4 +107,4 @@ class DataSurface:
         w = np.clip((tilt - _PLANES_AGREE_DEG) / _PLANES_AGREE_DEG, 0.0, 1.0)
         between = np.abs((1.0 - w) * planes_side + w * chord_side)
         beyond = np.sqrt(a0 ** 2 + np.maximum(b0 - self.reach[first], 0.0) ** 2)
-        return np.where(has, between, beyond)
+        return np.where(has, between, beyond), np.where(has, between, np.abs(a0))
