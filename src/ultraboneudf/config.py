@@ -550,10 +550,10 @@ def _robust() -> Config:
     point, which between slices lies beside the query rather than under it; past the data's rims
     that surface goes on for half the plane radius (2 mm), where an oblique echo faded. The support
     trim measures to the bridged surface, so bridged gaps stay closed, and also drops the faces 1 mm
-or more from it along its normal (sheets the noise band leaves under or over the bone). ``L_OS`` on 256 surface points
-    a step pins the zero level to the data where few frames saw the bone and the tangent phase alone
-    leaves the field above zero there. Leaves are kept ≥ 0.75 mm, so a small bone is not meshed
-    finer than its data resolve (docs/robustness.md measures each part)."""
+    or more from it along its normal (sheets the noise band leaves under or over the bone). ``L_OS``
+    on 256 surface points a step pins the zero level to the data where few frames saw the bone and
+    the tangent phase alone leaves the field above zero there. Leaves are kept ≥ 0.75 mm, so a small
+    bone is not meshed finer than its data resolve (docs/robustness.md measures each part)."""
     cfg = _fast()
     cfg.data.max_voxels = 200_000
     cfg.data.surface_fit_mm = 4.0

@@ -75,7 +75,8 @@ class Reconstruction:
 
     @property
     def support(self) -> np.ndarray | DataSurface | None:
-        """What the support trim (``extract.trim_mm``) measures distances to, in unit space."""
+        """What the support trim (``extract.trim_mm``, ``extract.trim_normal_mm``) measures distances
+        to, in unit space."""
         return None if self.surface is None else self.surface.support
 
     def extract(self, **settings: Any) -> trimesh.Trimesh | None:
