@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     rec.save(out / "demo_mesh.ply")
     result = evaluate(rec.mesh, phantom.truth, samples=args.samples, seed=0)
     save_json(result.to_dict(), out / "demo_eval.json")
-    picture = _picture(rec.mesh, phantom.truth, result.cd_mm, out)
+    picture = _picture(rec.mesh, phantom.truth, result.cd_mm, out, args.preset)
     t = rec.timings
     print(f"demo: Chamfer distance to the known truth {result.cd_mm:.3f} mm, HD95 {result.hd95_mm:.3f} mm "
           f"({rec.counts['faces']} faces, {t['total_s']:.1f} s on {rec.device}: preprocess "
@@ -62,11 +62,11 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _picture(mesh, truth, cd_mm: float, out: Path) -> Path:
+def _picture(mesh, truth, cd_mm: float, out: Path, preset: str) -> Path:
     """A distance-coloured render of the reconstruction against the truth (mean written = CD)."""
     from ..evaluation.render import reference_points, render_distance_png
 
     path = out / "demo_mesh.png"
     render_distance_png(path, mesh, reference_points(truth, samples=500_000), mean_mm=cd_mm,
-                        title="demo: fast preset, colour = distance to the truth (mm)")
+                        title=f"demo: {preset} preset, colour = distance to the truth (mm)")
     return path
