@@ -492,7 +492,7 @@ def _support(points: np.ndarray, planes: LocalPlanes | None, bridge: float) -> n
     to the nearest point without; its normals serve ``extract.trim_normal_mm``)."""
     if planes is None:
         return points
-    return DataSurface(points, planes.normal, max(bridge, 0.0) * planes.gap)
+    return DataSurface(points, planes.normal, bridge * planes.gap)
 
 
 def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, normalizer: Normalizer,
