@@ -35,7 +35,8 @@ resumes.
 Simulated inputs are cached under ``--cache`` (the sweep's points before the front end's outlier
 removal and frame registration, which run again each time, so a change to those steps is
 measured). ``--pictures`` renders each input's meshes coloured by their distance to the truth (one
-column per method).
+column per method); ``--meshes`` keeps the meshes themselves (a row already in ``--json`` is not
+run again, so its mesh is not written).
 """
 
 from __future__ import annotations
@@ -219,6 +220,7 @@ def main() -> None:
     p.add_argument("--cache", type=Path, default=Path("bench_out/robust_inputs"))
     p.add_argument("--json", type=Path, help="append each row to this JSON-lines file; skip rows already in it")
     p.add_argument("--pictures", type=Path, help="write one distance-coloured PNG per input here")
+    p.add_argument("--meshes", type=Path, help="write each mesh here (BONE_LEVEL_sSEED_METHOD.ply, mm)")
     args = p.parse_args()
     import torch
 
@@ -253,6 +255,9 @@ def main() -> None:
                     with args.json.open("a") as f:
                         f.write(json.dumps(rows[-1]) + "\n")
                 meshes[method] = mesh
+                if args.meshes and mesh is not None:
+                    args.meshes.mkdir(parents=True, exist_ok=True)
+                    mesh.export(args.meshes / f"{bone}_{level}_s{args.seed}_{method}.ply")
             if args.pictures and meshes:
                 import trimesh
 
