@@ -1,6 +1,6 @@
 # Two commands that work on a fresh machine: `make demo` and `make test`.
-# The CPU build of torch is pinned here for CI and the demo; GPU users install their own torch
-# first and then `pip install -e .`.
+# The CPU build of torch is pinned here for CI and the demo, the other packages in constraints.txt;
+# GPU users install their own torch first and then `pip install -e .`.
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -9,11 +9,11 @@ STAMP := $(VENV)/.installed
 
 .PHONY: demo test venv bench clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet "$(TORCH_PIN)"
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet -e '.[test]' -c constraints.txt
 	touch $(STAMP)
 
 venv: $(STAMP)
