@@ -24,16 +24,18 @@ no input point comes near, e.g. steep faces whose echoes the segmentation droppe
     python benchmarks/bench_robust.py --bones talus --levels clean,hard --preset fast
     python benchmarks/bench_robust.py --json bench_out/robust.jsonl --pictures bench_out/robust_png
     python benchmarks/bench_robust.py --levels hard --methods ultraboneudf --no-align
+    python benchmarks/bench_robust.py --levels hard --methods ultraboneudf --no-fragments
     python benchmarks/bench_robust.py --bones talus --levels hard --sim pred_max_incidence_deg=75
 
 ``--sim`` changes one simulation option of the sweep levels (the last line: the segmentation keeps
 echoes up to the visible truth's 75° incidence instead of fading them from 60°).
 
 Rows are appended to ``--json`` as they finish (JSON lines); a rerun skips the rows already there
-(same bone, level, seed, method, preset, iterations, ``--set`` and ``--sim``), so a killed run
-resumes.
+(same bone, level, seed, method, preset, iterations, ``--set``, ``--sim`` and the front end's
+steps), so a killed run resumes. ``--no-fragments`` keeps the isolated fragments that neighbouring
+frames do not confirm (the front end removes them by default).
 Simulated inputs are cached under ``--cache`` (the sweep's points before the front end's outlier
-removal and frame registration, which run again each time, so a change to those steps is
+removal, fragment filter and frame registration, which run again each time, so a change to those steps is
 measured). ``--pictures`` renders each input's meshes coloured by their distance to the truth (one
 column per method); ``--meshes`` keeps the meshes themselves (a row already in ``--json`` is not
 run again, so its mesh is not written).
@@ -58,10 +60,11 @@ LEVELS = "clean,moderate,hard,open,e6-0.5,e6-1.0,e6-1.5,e6-2.0"
 
 
 def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True,
-               sim: dict | None = None):
+               sim: dict | None = None, no_fragments: bool = False):
     """(points (N, 3) mm, probe positions (N, 3) mm or None, truth mesh) of one bone at one level;
     ``align``: the sweep's frames registered to their neighbours, as ``reconstruct SWEEP`` does
-    (``--no-align``: not); ``sim``: simulation options over the level's (sweep levels only).
+    (``--no-align``: not); ``sim``: simulation options over the level's (sweep levels only);
+    ``no_fragments``: keep the fragments that neighbouring frames do not confirm.
 
     ``cache`` keeps what the simulator made (the compounded points with their provenance, and the
     truth), so that a later run skips the simulation; the outliers are removed and the frames
@@ -94,7 +97,8 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
 
             sim = simulate_sweep(mesh, sim_cfg)
             truth = sim.visible_mesh
-            arrays = asdict(sweep_to_points(sim.sweep, segment="masks", remove_outliers=False))
+            arrays = asdict(sweep_to_points(sim.sweep, segment="masks", remove_outliers=False,
+                                            remove_fragments=False))
         else:
             truth = facing_surface(mesh, (0.0, 0.0, 1.0))
             points = trimesh.sample.sample_surface(truth, 100_000, seed=seed)[0]
@@ -109,10 +113,14 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
     if level not in SWEEP_LEVELS:
         return data["points"], None, truth
     from ultraboneudf.sweep.compound import CompoundedPoints
+    from ultraboneudf.sweep.consistency import unconfirmed_fragments
     from ultraboneudf.sweep.outliers import outlier_mask
 
     cp = CompoundedPoints(**data)
-    cp = cp.subset(outlier_mask(cp.points))  # the front end's default rule, as sweep_to_points has it
+    # the front end's defaults, as sweep_to_points has them
+    cp = cp.subset(outlier_mask(cp.points))
+    if not no_fragments:
+        cp = cp.subset(unconfirmed_fragments(cp)[0])
     if align:
         from ultraboneudf.sweep import align_frames
 
@@ -215,6 +223,8 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the simulation and of every method")
     p.add_argument("--no-align", action="store_true", help="keep the sweeps' frames as tracked "
                    "(reconstruct --no-align-frames)")
+    p.add_argument("--no-fragments", action="store_true", help="keep the isolated fragments that "
+                   "neighbouring frames do not confirm (reconstruct --no-consistency)")
     p.add_argument("--samples", type=int, default=300_000, help="area samples per mesh for CD/HD95")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--cache", type=Path, default=Path("bench_out/robust_inputs"))
@@ -233,7 +243,8 @@ def main() -> None:
     rows = []
     for bone in args.bones.split(","):
         for level in args.levels.split(","):
-            points, probe, truth = make_input(bone, level, args.seed, args.cache, not args.no_align, sim)
+            points, probe, truth = make_input(bone, level, args.seed, args.cache, not args.no_align, sim,
+                                              args.no_fragments)
             meshes = {}
             for method in args.methods.split(","):
                 key = {"bone": bone, "level": level, "seed": args.seed, "method": method,
@@ -241,8 +252,11 @@ def main() -> None:
                 if level in SWEEP_LEVELS:
                     key["align"] = not args.no_align
                     key["sim"] = args.sim
-                # rows written before --sim existed have no "sim": they were made without one
-                old = next((r for r in done if all(r.get(k, [] if k == "sim" else None) == v
+                    key["fragments"] = not args.no_fragments
+                # rows written before --sim and the fragment filter existed have neither: they
+                # were made without them
+                missing = {"sim": [], "fragments": False}
+                old = next((r for r in done if all(r.get(k, missing.get(k)) == v
                                                    for k, v in key.items())), None)
                 if old is not None:
                     rows.append(old)

@@ -165,6 +165,7 @@ def test_bone_and_spine_reconstruct_end_to_end(tmp_path, capsys, name, config):
     assert sweep["pose_chain"]["reference_frame"] == "Reference"
     assert sweep["points"]["count"] == side["counts"]["input_points"] > 1000
     assert sweep["outlier_removal"] == {"rule": "local", "k": 16, "factor": 1.5}
+    assert sweep["fragments"]["groups"] >= 1 and sweep["fragments"]["removed"] >= 0
     assert sweep["shear_deg"] == pytest.approx(-2.745 if name == SPINE else 0.0, abs=2e-3)
     import trimesh
 

@@ -105,8 +105,11 @@ def test_sweep_to_points_and_points_from_sweep(tmp_path):
     # top_only takes the stray pixel in its scan line; outlier removal then drops it
     assert len(cp) == 30 * 30 - 1
     np.testing.assert_allclose(cp.points[:, 1], 5.25)
-    pts = points_from_sweep(tmp_path / "sw", top_only=False, remove_outliers=False)
+    pts = points_from_sweep(tmp_path / "sw", top_only=False, remove_outliers=False,
+                            remove_fragments=False)
     assert pts.shape == (30 * 30 * 4 + 1, 3) and pts.dtype == np.float64
+    # the stray pixel is also a fragment that the neighbouring frames do not confirm
+    assert len(points_from_sweep(tmp_path / "sw", top_only=False, remove_outliers=False)) == 30 * 30 * 4
     assert len(sweep_to_points(tmp_path / "sw", outlier_rule="statistical")) == 30 * 30 - 1
     with pytest.raises(InputError, match="unknown outlier rule"):
         sweep_to_points(tmp_path / "sw", outlier_rule="median")

@@ -47,7 +47,9 @@ def add_sweep_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--detector", action="append", default=[], metavar="KEY=VALUE",
                    help="classical detector option (mm), e.g. --detector min_depth_mm=8; repeatable")
     g.add_argument("--no-consistency", action="store_true",
-                   help="classical detector: keep echoes that no neighbouring frame confirms")
+                   help="keep echoes that no neighbouring frame confirms (by default the classical "
+                        "detector drops them point by point, and for every segmentation the isolated "
+                        "fragments seen in one or two frames are dropped)")
     g.add_argument("--threshold", type=float, default=0.5,
                    help="learned model: probability threshold (default 0.5)")
     g.add_argument("--no-align-frames", action="store_true",
@@ -132,6 +134,7 @@ def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, to
     from ..sweep import align_frames, read_sweep, segment_sweep, sweep_to_points
     from ..sweep.bone import classical_bone_masks
     from ..sweep.chain import frames_coplanar
+    from ..sweep.consistency import unconfirmed_fragments
     from ..sweep.formats.images import load_mask_stack
 
     sweep = read_sweep(path, progress=progress, **read_options(args, path))
@@ -188,7 +191,15 @@ def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, to
                          f"(segmentation: {method}{why})")
     cp = sweep_to_points(sweep.with_masks(masks), segment="masks", top_only=top_only,
                          remove_outliers=remove_outliers, outlier_rule=outlier_rule, outlier_k=outlier_k,
-                         outlier_std=outlier_std, outlier_factor=outlier_factor, progress=progress)
+                         outlier_std=outlier_std, outlier_factor=outlier_factor,
+                         remove_fragments=False, progress=progress)
+    if not args.no_consistency:
+        keep, fragments = unconfirmed_fragments(cp)
+        cp = cp.subset(keep)
+        info["fragments"] = fragments.as_dict()
+        if fragments.removed:
+            progress.log(f"{path.name}: removed {fragments.removed} points in {fragments.fragments} "
+                         f"fragment(s) that neighbouring frames do not confirm")
     if frame_step > 1:
         cp.frame_index = cp.frame_index * frame_step
     info["outlier_removal"] = None if not remove_outliers else {

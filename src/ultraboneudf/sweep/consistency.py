@@ -6,6 +6,12 @@ reverberation found in one frame alone does not. :func:`consistent_detections` k
 surface point when some neighbouring frame that *can* see it (near enough, the point inside its
 image) also has a detection near it; it does not judge frames whose neighbours are all far away
 (a sparse subset of a sweep), and keeps their points.
+
+:func:`unconfirmed_fragments` asks the same question of compounded points, whatever segmented them,
+one isolated group of points at a time: a fragment seen in one or two frames, far from every other
+detection, while neighbouring frames imaged the same place and found nothing there (a fascia line
+or a reverberation in one frame) is removed. It needs only each point's frame and probe position,
+so it also judges points already compounded (a saved cloud, a simulated sweep).
 """
 
 from __future__ import annotations
@@ -13,8 +19,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from ..geometry.neighbors import kd_tree
+from .compound import CompoundedPoints
 from .model import Sweep
 from .transforms import pixels_to_world
 
@@ -97,4 +106,97 @@ def consistent_detections(sweep: Sweep, rows: np.ndarray, neighbours: int = 2, r
     return out, ConsistencyReport(removed, judged, kept, frames_judged)
 
 
-__all__ = ["consistent_detections", "ConsistencyReport"]
+@dataclass
+class FragmentReport:
+    """What :func:`unconfirmed_fragments` did: ``removed`` points in ``fragments`` groups, of
+    ``groups`` isolated groups of points found."""
+
+    removed: int
+    fragments: int
+    groups: int
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def _linked_groups(points: np.ndarray, reach_mm: float) -> np.ndarray:
+    """``(N,)`` group label of each point: points are linked when the centroids of their cells
+    (cubes of edge ``reach_mm / 2``) are within ``reach_mm``. Linking cells rather than points keeps
+    the cost linear in the number of points on dense sweeps, where a ball of a few mm holds
+    thousands of them."""
+    cells = np.floor(points / (0.5 * reach_mm)).astype(np.int64)
+    cells -= cells.min(axis=0)
+    dims = cells.max(axis=0) + 1
+    keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    centroids = np.stack([np.bincount(inverse, weights=points[:, k]) for k in range(3)], axis=1)
+    centroids /= counts[:, None]
+    pairs = kd_tree(centroids).query_pairs(reach_mm, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(counts),) * 2)
+    return connected_components(graph, directed=False)[1][inverse]
+
+
+def _frame_planes(cp: CompoundedPoints) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """``{frame: (point on its image plane, unit normal)}`` from each frame's points and their
+    scan-line origins, which all lie in the frame's image plane (mm); frames whose points and
+    origins lie on one line have no plane and are left out."""
+    planes = {}
+    order = np.argsort(cp.frame_index, kind="stable")
+    frames, starts = np.unique(cp.frame_index[order], return_index=True)
+    for f, rows in zip(frames, np.split(order, starts[1:])):
+        rows = rows[:: max(1, len(rows) // 1000)]  # a plane needs few points; bound the cost
+        x = np.vstack([cp.points[rows], cp.probe_position[rows]])
+        centre = x.mean(axis=0)
+        _, s, vt = np.linalg.svd(x - centre, full_matrices=False)
+        if len(s) == 3 and s[1] > 1e-6 * s[0]:
+            planes[int(f)] = (centre, vt[2])
+    return planes
+
+
+def unconfirmed_fragments(cp: CompoundedPoints, reach_mm: float = 4.0, neighbours: int = 2,
+                          max_frames: int = 2) -> tuple[np.ndarray, FragmentReport]:
+    """Find the isolated fragments of detections that neighbouring frames do not confirm.
+
+    The points are split into groups linked within ``reach_mm`` (a bone surface swept with frames
+    closer than that is one group; a false echo away from it is a group of its own). A group seen
+    in at most ``max_frames`` frames is removed when at least as many other frames within
+    ``neighbours`` of those frames (in sweep order) have their image plane within ``reach_mm`` of it
+    (median over its points) — they imaged that place and found nothing there. Groups in frames
+    whose neighbours are farther apart than ``reach_mm`` (a sparse subset of a sweep) are not judged.
+
+    Args:
+        cp: compounded points (mm) with their frame indices and probe positions.
+        reach_mm: linking distance and the largest plane distance at which a frame judges, mm.
+        neighbours: frames on each side (in frame index) that may judge a group.
+        max_frames: groups seen in more frames than this are kept.
+
+    Returns:
+        ``(keep, report)``: ``(N,)`` bool, False for the points of the removed fragments.
+    """
+    n = len(cp)
+    keep = np.ones(n, dtype=bool)
+    if n == 0:
+        return keep, FragmentReport(0, 0, 0)
+    labels = _linked_groups(np.asarray(cp.points, dtype=np.float64), reach_mm)
+    order = np.argsort(labels, kind="stable")
+    counts = np.bincount(labels)
+    planes = _frame_planes(cp)
+    fragments = 0
+    for rows in np.split(order, np.cumsum(counts)[:-1]):
+        seen = set(np.unique(cp.frame_index[rows]).tolist())
+        if len(seen) > max_frames:
+            continue
+        pts = cp.points[rows]
+        near = {g for f in seen for g in range(f - neighbours, f + neighbours + 1)} - seen
+        judges = sum(1 for g in near if g in planes
+                     and np.median(np.abs((pts - planes[g][0]) @ planes[g][1])) < reach_mm)
+        if judges >= len(seen):
+            keep[rows] = False
+            fragments += 1
+    if not keep.any():  # fragments judging each other, nothing to confirm them against: no verdict
+        keep[:], fragments = True, 0
+    return keep, FragmentReport(int((~keep).sum()), fragments, len(counts))
+
+
+__all__ = ["consistent_detections", "ConsistencyReport", "unconfirmed_fragments", "FragmentReport"]

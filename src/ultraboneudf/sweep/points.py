@@ -16,6 +16,7 @@ import numpy as np
 from ..errors import InputError
 from ..progress import QUIET, Progress
 from .compound import CompoundedPoints, compound
+from .consistency import unconfirmed_fragments
 from .learned import LearnedSegmenter, is_model_path
 from .model import Sweep
 from .outliers import OUTLIER_RULES, outlier_mask
@@ -65,7 +66,7 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
                     model_options: Mapping[str, Any] | None = None,
                     top_only: bool = True, remove_outliers: bool = True, outlier_rule: str = "local",
                     outlier_k: int = 16, outlier_std: float = 2.0, outlier_factor: float = 1.5,
-                    frame_step: int = 1,
+                    remove_fragments: bool = True, frame_step: int = 1,
                     progress: Progress = QUIET, **read_options: Any) -> CompoundedPoints:
     """Tracked sweep → bone points in world mm, with per-point provenance.
 
@@ -82,6 +83,9 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
             ``outlier_rule`` ``local`` (local outlier factor over ``outlier_k`` neighbours at least
             ``outlier_factor``; keeps the sparse echoes of steep faces) or ``statistical`` (mean
             neighbour distance beyond ``outlier_std`` standard deviations).
+        remove_fragments: then drop the isolated fragments seen in one or two frames that
+            neighbouring frames imaged without finding them
+            (:func:`~.consistency.unconfirmed_fragments`, 4 mm).
         frame_step: use every ``frame_step``-th frame.
         progress: progress reporter.
 
@@ -118,6 +122,12 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
                          f"frames (segmentation: {method})")
     if remove_outliers and len(cp) > outlier_k + 1:
         cp = cp.subset(outlier_mask(cp.points, outlier_rule, outlier_k, outlier_std, outlier_factor))
+    if remove_fragments:
+        keep, report = unconfirmed_fragments(cp)
+        cp = cp.subset(keep)
+        if report.removed:
+            progress.log(f"removed {report.removed} points in {report.fragments} fragment(s) that "
+                         f"neighbouring frames do not confirm")
     if frame_step > 1:  # report frame indices of the original sweep
         cp.frame_index = cp.frame_index * int(frame_step)
     progress.log(f"{len(cp)} bone points from {sweep.n_frames} frames ({method})")
