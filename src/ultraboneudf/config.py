@@ -554,7 +554,7 @@ def _robust() -> Config:
     on 256 surface points a step pins the zero level to the data where few frames saw the bone and
     the tangent phase alone leaves the field above zero there. Leaves are kept ≥ 0.75 mm, so a small
     bone is not meshed finer than its data resolve. The network is twice as wide as ``fast``'s
-    (4 × 128): on these points it follows the denoised surface more closely, for 1.5× the time
+    (4 × 128): on these points it follows the denoised surface more closely, for 1.6–1.8× the time
     (docs/robustness.md measures each part)."""
     cfg = _fast()
     cfg.model.hidden = (128, 128, 128, 128)
