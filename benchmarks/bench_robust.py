@@ -35,10 +35,10 @@ Rows are appended to ``--json`` as they finish (JSON lines); a rerun skips the r
 steps), so a killed run resumes. ``--no-fragments`` keeps the isolated fragments that neighbouring
 frames do not confirm (the front end removes them by default).
 Simulated inputs are cached under ``--cache`` (the sweep's points before the front end's outlier
-removal, fragment filter and frame registration, which run again each time, so a change to those steps is
-measured). ``--pictures`` renders each input's meshes coloured by their distance to the truth (one
-column per method); ``--meshes`` keeps the meshes themselves (a row already in ``--json`` is not
-run again, so its mesh is not written).
+removal, fragment filter and frame registration, which run again each time, so a change to those
+steps is measured). ``--pictures`` renders each input's meshes coloured by their distance to the
+truth (one column per method); ``--meshes`` keeps the meshes themselves (a row already in
+``--json`` is not run again, so its mesh is not written).
 """
 
 from __future__ import annotations

@@ -193,6 +193,7 @@ def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, to
                          remove_outliers=remove_outliers, outlier_rule=outlier_rule, outlier_k=outlier_k,
                          outlier_std=outlier_std, outlier_factor=outlier_factor,
                          remove_fragments=False, progress=progress)
+    info["fragments"] = None
     if not args.no_consistency:
         keep, fragments = unconfirmed_fragments(cp)
         cp = cp.subset(keep)
