@@ -5,10 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 
-def _voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+def voxel_groups(points: np.ndarray, voxel: float, origin: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Voxel id ``(N,)`` of every point (ids numbered in lexicographic voxel-index order) and the
-    number of points ``(M,)`` of each occupied voxel."""
-    origin = points.min(axis=0) - voxel / 2.0
+    number of points ``(M,)`` of each occupied voxel. The grid's corner is ``origin`` (3,), at or
+    below every point; by default the bounding-box minimum − ``voxel / 2``."""
+    if origin is None:
+        origin = points.min(axis=0) - voxel / 2.0
     idx = np.floor((points - origin) / voxel).astype(np.int64)
     dims = idx.max(axis=0) + 1
     # Row-major packing keeps lexicographic order; fall back to a row-wise unique if it would overflow.
@@ -20,7 +23,7 @@ def _voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndar
     return inverse.reshape(-1), counts
 
 
-def _group_mean(values: np.ndarray, inverse: np.ndarray, counts: np.ndarray) -> np.ndarray:
+def group_mean(values: np.ndarray, inverse: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Per-voxel mean ``(M, K)`` of the rows of ``values`` ``(N, K)``."""
     sums = np.stack([np.bincount(inverse, weights=values[:, k], minlength=len(counts))
                      for k in range(values.shape[1])], axis=1)
@@ -38,8 +41,8 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64)
     if voxel <= 0:
         return points.copy()
-    inverse, counts = _voxel_groups(points, voxel)
-    return _group_mean(points, inverse, counts)
+    inverse, counts = voxel_groups(points, voxel)
+    return group_mean(points, inverse, counts)
 
 
 def voxel_downsample_with(points: np.ndarray, attributes: np.ndarray, voxel: float
@@ -54,5 +57,5 @@ def voxel_downsample_with(points: np.ndarray, attributes: np.ndarray, voxel: flo
         raise ValueError(f"attributes must be (N, K) with N = {len(points)} rows, got {attributes.shape}")
     if voxel <= 0:
         return points.copy(), attributes.copy()
-    inverse, counts = _voxel_groups(points, voxel)
-    return _group_mean(points, inverse, counts), _group_mean(attributes, inverse, counts)
+    inverse, counts = voxel_groups(points, voxel)
+    return group_mean(points, inverse, counts), group_mean(attributes, inverse, counts)

@@ -23,6 +23,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ..geometry.neighbors import kd_tree
+from ..geometry.voxel import group_mean, voxel_groups
 from .compound import CompoundedPoints
 from .model import Sweep
 from .transforms import pixels_to_world
@@ -124,14 +125,9 @@ def _linked_groups(points: np.ndarray, reach_mm: float) -> np.ndarray:
     (cubes of edge ``reach_mm / 2``) are within ``reach_mm``. Linking cells rather than points keeps
     the cost linear in the number of points on dense sweeps, where a ball of a few mm holds
     thousands of them."""
-    cells = np.floor(points / (0.5 * reach_mm)).astype(np.int64)
-    cells -= cells.min(axis=0)
-    dims = cells.max(axis=0) + 1
-    keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
-    centroids = np.stack([np.bincount(inverse, weights=points[:, k]) for k in range(3)], axis=1)
-    centroids /= counts[:, None]
+    edge = 0.5 * reach_mm
+    inverse, counts = voxel_groups(points, edge, origin=edge * np.floor(points.min(axis=0) / edge))
+    centroids = group_mean(points, inverse, counts)
     pairs = kd_tree(centroids).query_pairs(reach_mm, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(counts),) * 2)
     return connected_components(graph, directed=False)[1][inverse]
