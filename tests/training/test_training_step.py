@@ -160,6 +160,25 @@ def test_training_threads_are_restored():
     assert torch.get_num_threads() == before
 
 
+def test_subnormals_are_flushed_on_the_cpu_inside_the_block_only():
+    """FUNSR's discriminator drives Adam's second moments below float32's normal range, where a CPU
+    computes many times slower; the block flushes them to zero and leaves the default (kept) after,
+    also when the block raises."""
+    from ultraboneudf.training import flush_denormals
+
+    tiny = torch.tensor([1e-30], dtype=torch.float32)
+    if not torch.set_flush_denormal(False):
+        pytest.skip("this CPU cannot flush subnormals")
+    assert float(tiny * 1e-10) > 0.0  # 1e-40: subnormal, kept by default
+    with flush_denormals(torch.device("cpu")):
+        assert float(tiny * 1e-10) == 0.0
+    assert float(tiny * 1e-10) > 0.0
+    with pytest.raises(RuntimeError):
+        with flush_denormals(torch.device("cpu")):
+            raise RuntimeError("boom")
+    assert float(tiny * 1e-10) > 0.0
+
+
 def test_a_diverging_loss_stops_training_naming_the_step_and_the_setting():
     """A loss that is no longer finite (here from anchor targets at infinity) stops the loop at the
     next recorded step with one message, instead of training on NaN."""

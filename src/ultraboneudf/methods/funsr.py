@@ -18,7 +18,7 @@ from ..fields.mlp import MLPField, count_parameters, value_and_grad
 from ..geometry.surface_fit import LocalPlanes
 from ..training.losses import lsgan_discriminator_loss, lsgan_generator_loss, pull_loss, sign_consistency_loss
 from ..progress import QUIET, Progress
-from ..training import LoopLog, StridedSampler, learning_rate
+from ..training import LoopLog, StridedSampler, cpu_threads, flush_denormals, learning_rate
 from .base import Fitted
 from .ultraboneudf import build_network, prepare
 
@@ -96,7 +96,9 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.funsr.disc_lr, betas=(0.9, 0.999), eps=1e-8)
     lc, iters = cfg.loss, cfg.train.iters
     net.train()
-    with progress.stage("training", iters) as advance:
+    # the discriminator's sigmoid saturates, and about 40% of its Adam second moments sink below
+    # float32's normal range within 150 steps: unflushed, a CPU step takes 8 times as long
+    with cpu_threads(cfg.train.threads), flush_denormals(device), progress.stage("training", iters) as advance:
         log = LoopLog(iters, advance, device, log_every, lr=cfg.train.lr, progress=progress)
         for i in range(iters):
             for group in opt.param_groups:
