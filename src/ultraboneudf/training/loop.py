@@ -50,7 +50,7 @@ def cpu_threads(n: int):
 def flush_denormals(device: torch.device):
     """Run the block with subnormal floats flushed to zero on the CPU (``device`` a CUDA device:
     unchanged), then back to PyTorch's default (off; PyTorch offers no way to read the setting).
-    Arithmetic on subnormals runs in microcode on x86 CPUs, tens of times slower: an optimiser whose
+    Arithmetic on subnormals runs in microcode on x86 CPUs, many times slower: an optimiser whose
     second moments decay into that range (a saturated sigmoid's gradients, squared) spends most of
     each step there."""
     on = device.type == "cpu" and torch.set_flush_denormal(True)
