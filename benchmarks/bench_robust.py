@@ -113,14 +113,14 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
     if level not in SWEEP_LEVELS:
         return data["points"], None, truth
     from ultraboneudf.sweep.compound import CompoundedPoints
-    from ultraboneudf.sweep.consistency import unconfirmed_fragments
+    from ultraboneudf.sweep.consistency import drop_unconfirmed_fragments
     from ultraboneudf.sweep.outliers import outlier_mask
 
     cp = CompoundedPoints(**data)
     # the front end's defaults, as sweep_to_points has them
     cp = cp.subset(outlier_mask(cp.points))
     if not no_fragments:
-        cp = cp.subset(unconfirmed_fragments(cp)[0])
+        cp = drop_unconfirmed_fragments(cp)[0]
     if align:
         from ultraboneudf.sweep import align_frames
 

@@ -134,7 +134,7 @@ def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, to
     from ..sweep import align_frames, read_sweep, segment_sweep, sweep_to_points
     from ..sweep.bone import classical_bone_masks
     from ..sweep.chain import frames_coplanar
-    from ..sweep.consistency import unconfirmed_fragments
+    from ..sweep.consistency import drop_unconfirmed_fragments
     from ..sweep.formats.images import load_mask_stack
 
     sweep = read_sweep(path, progress=progress, **read_options(args, path))
@@ -194,13 +194,9 @@ def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, to
                          outlier_std=outlier_std, outlier_factor=outlier_factor,
                          remove_fragments=False, progress=progress)
     info["fragments"] = None
-    if not args.no_consistency:
-        keep, fragments = unconfirmed_fragments(cp)
-        cp = cp.subset(keep)
+    if not args.no_consistency:  # here, not in sweep_to_points, for the sidecar's report
+        cp, fragments = drop_unconfirmed_fragments(cp, progress, path.name)
         info["fragments"] = fragments.as_dict()
-        if fragments.removed:
-            progress.log(f"{path.name}: removed {fragments.removed} points in {fragments.fragments} "
-                         f"fragment(s) that neighbouring frames do not confirm")
     if frame_step > 1:
         cp.frame_index = cp.frame_index * frame_step
     info["outlier_removal"] = None if not remove_outliers else {

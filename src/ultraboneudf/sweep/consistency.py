@@ -24,6 +24,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ..geometry.neighbors import kd_tree
 from ..geometry.voxel import group_mean, voxel_groups
+from ..progress import QUIET, Progress
 from .compound import CompoundedPoints
 from .model import Sweep
 from .transforms import pixels_to_world
@@ -195,4 +196,16 @@ def unconfirmed_fragments(cp: CompoundedPoints, reach_mm: float = 4.0, neighbour
     return keep, FragmentReport(int((~keep).sum()), fragments, len(counts))
 
 
-__all__ = ["consistent_detections", "ConsistencyReport", "unconfirmed_fragments", "FragmentReport"]
+def drop_unconfirmed_fragments(cp: CompoundedPoints, progress: Progress = QUIET, source: str = ""
+                               ) -> tuple[CompoundedPoints, FragmentReport]:
+    """``cp`` without its unconfirmed fragments (:func:`unconfirmed_fragments`, defaults) and the
+    report; says on ``progress`` how many points went, prefixed with ``source`` (e.g. a file name)."""
+    keep, report = unconfirmed_fragments(cp)
+    if report.removed:
+        progress.log(f"{source + ': ' if source else ''}removed {report.removed} points in "
+                     f"{report.fragments} fragment(s) that neighbouring frames do not confirm")
+    return cp.subset(keep), report
+
+
+__all__ = ["consistent_detections", "ConsistencyReport", "unconfirmed_fragments", "drop_unconfirmed_fragments",
+           "FragmentReport"]

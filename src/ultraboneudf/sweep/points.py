@@ -16,7 +16,7 @@ import numpy as np
 from ..errors import InputError
 from ..progress import QUIET, Progress
 from .compound import CompoundedPoints, compound
-from .consistency import unconfirmed_fragments
+from .consistency import drop_unconfirmed_fragments
 from .learned import LearnedSegmenter, is_model_path
 from .model import Sweep
 from .outliers import OUTLIER_RULES, outlier_mask
@@ -123,11 +123,7 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
     if remove_outliers and len(cp) > outlier_k + 1:
         cp = cp.subset(outlier_mask(cp.points, outlier_rule, outlier_k, outlier_std, outlier_factor))
     if remove_fragments:
-        keep, report = unconfirmed_fragments(cp)
-        cp = cp.subset(keep)
-        if report.removed:
-            progress.log(f"removed {report.removed} points in {report.fragments} fragment(s) that "
-                         f"neighbouring frames do not confirm")
+        cp = drop_unconfirmed_fragments(cp, progress)[0]
     if frame_step > 1:  # report frame indices of the original sweep
         cp.frame_index = cp.frame_index * int(frame_step)
     progress.log(f"{len(cp)} bone points from {sweep.n_frames} frames ({method})")
