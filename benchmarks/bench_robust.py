@@ -114,11 +114,11 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
         return data["points"], None, truth
     from ultraboneudf.sweep.compound import CompoundedPoints
     from ultraboneudf.sweep.consistency import drop_unconfirmed_fragments
-    from ultraboneudf.sweep.outliers import outlier_mask
+    from ultraboneudf.sweep.points import drop_outliers
 
     cp = CompoundedPoints(**data)
     # the front end's defaults, as sweep_to_points has them
-    cp = cp.subset(outlier_mask(cp.points))
+    cp = drop_outliers(cp)
     if not no_fragments:
         cp = drop_unconfirmed_fragments(cp)[0]
     if align:

@@ -235,8 +235,9 @@ def _quadric_height(d: np.ndarray, weight: np.ndarray, vecs: np.ndarray, own: np
 
 
 def shadowed(points: np.ndarray, view: np.ndarray, margin: float, depth: float = 10.0,
-             tolerance: float = 0.5) -> np.ndarray:
-    """(N,) bool: points with another point of the cloud above them on their own beam.
+             tolerance: float = 0.5, occluders: np.ndarray | None = None) -> np.ndarray:
+    """(N,) bool: points with another point of the cloud (or of ``occluders`` (M, 3)) above them on
+    their own beam.
 
     ``view`` (N, 3) are unit directions down each point's beam (probe → point). Bone returns the
     first strong echo and shadows what lies beneath it, so a detection with a cloud point between
@@ -244,10 +245,11 @@ def shadowed(points: np.ndarray, view: np.ndarray, margin: float, depth: float =
     a false echo in that shadow. Lengths in the cloud's unit; ``margin`` must exceed the noise along
     the beam left in the points (denoise first)."""
     pts = np.asarray(points, dtype=np.float64)
+    casters = pts if occluders is None else np.asarray(occluders, dtype=np.float64)
     out = np.zeros(len(pts), dtype=bool)
-    if len(pts) < 2:
+    if len(pts) == 0 or len(casters) < (2 if occluders is None else 1):
         return out
-    tree = kd_tree(pts)
+    tree = kd_tree(casters)
     for d in np.arange(margin, depth + 1e-9, tolerance / 2):  # probes half a tolerance apart
         dist, _ = tree.query(pts - d * view, k=1, distance_upper_bound=tolerance, workers=-1)
         out |= np.isfinite(dist)

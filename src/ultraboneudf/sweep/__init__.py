@@ -10,7 +10,8 @@ Pieces: :class:`Sweep` (frames + poses in memory), readers/writers by layout
 Slicer ``.seq.nrrd``), the PLUS pose chain and calibrations (:mod:`.chain`,
 :func:`read_calibration`), :class:`BoneDetector` and :func:`classical_bone_masks` (classical
 segmentation with the frame-to-frame consistency filter), :class:`LearnedSegmenter`
-(TorchScript/ONNX plug-in), :func:`compound` (mask pixels → world mm), outlier removal and
+(TorchScript/ONNX plug-in), :func:`compound` (mask pixels → world mm), outlier removal
+(:func:`drop_outliers`, which gives back what :func:`confirmed_by_frames` vouches for) and
 :func:`unconfirmed_fragments` (echoes no neighbouring frame confirms),
 :func:`align_frames` (each frame rigidly registered to its neighbours against tracking error).
 """
@@ -19,11 +20,11 @@ from .align import AlignmentReport, align_frames
 from .bone import classical_bone_masks
 from .calibration import Calibration, read_calibration
 from .compound import CompoundedPoints, compound, top_boundary
-from .consistency import unconfirmed_fragments
+from .consistency import confirmed_by_frames, unconfirmed_fragments
 from .learned import LearnedSegmenter, load_model
 from .model import Sweep, SweepWarning
 from .outliers import local_outlier_mask, outlier_mask, radius_outlier_mask, statistical_outlier_mask
-from .points import points_from_sweep, segment_sweep, sweep_to_points
+from .points import drop_outliers, points_from_sweep, segment_sweep, sweep_to_points
 from .formats import LAYOUTS, detect_layout, is_sweep_path, read_sweep, write_sweep
 from .segment import BoneDetector, segment_bone
 from .transforms import check_rigid, pixels_to_world, rigid_from_euler
@@ -34,5 +35,5 @@ __all__ = [
     "CompoundedPoints", "compound", "top_boundary", "outlier_mask", "local_outlier_mask",
     "statistical_outlier_mask", "radius_outlier_mask",
     "sweep_to_points", "points_from_sweep", "rigid_from_euler", "check_rigid", "pixels_to_world",
-    "align_frames", "AlignmentReport", "unconfirmed_fragments",
+    "align_frames", "AlignmentReport", "unconfirmed_fragments", "confirmed_by_frames", "drop_outliers",
 ]

@@ -12,6 +12,12 @@ one isolated group of points at a time: a fragment seen in one or two frames, fa
 detection, while neighbouring frames imaged the same place and found nothing there (a fascia line
 or a reverberation in one frame) is removed. It needs only each point's frame and probe position,
 so it also judges points already compounded (a saved cloud, a simulated sweep).
+
+:func:`confirmed_by_frames` asks it the other way round, of the points an outlier rule removed: a
+steep face returns a few weak echoes beside the dense face above it, sparse enough for the local
+outlier factor to remove, yet several frames find them in the same place, and no bone lies above
+them along their beam. Those are given back; false echoes in the bone's acoustic shadow and
+flickers of one or two frames are not.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ..geometry.neighbors import kd_tree
+from ..geometry.surface_fit import shadowed
 from ..geometry.voxel import group_mean, voxel_groups
 from ..progress import QUIET, Progress
 from .compound import CompoundedPoints
@@ -196,6 +203,43 @@ def unconfirmed_fragments(cp: CompoundedPoints, reach_mm: float = 4.0, neighbour
     return keep, FragmentReport(int((~keep).sum()), fragments, len(counts))
 
 
+def confirmed_by_frames(cp: CompoundedPoints, removed: np.ndarray, reach_mm: float = 4.0,
+                        min_frames: int = 3, margin_mm: float = 2.0, depth_mm: float = 15.0,
+                        tolerance_mm: float = 0.5) -> np.ndarray:
+    """Of the points an outlier rule removed, those the sweep vouches for (module docstring).
+
+    A removed point is confirmed when no kept point lies between ``margin_mm`` and ``depth_mm``
+    above it along its own beam (within ``tolerance_mm`` of the beam: it is not in the acoustic
+    shadow of the bone the sweep kept) and, linked within ``reach_mm`` to the other such points, it
+    belongs to a group seen in at least ``min_frames`` frames. ``margin_mm`` must exceed the noise
+    along the beam (2 mm: 2.5 σ where σ = 0.8 mm); ``depth_mm`` covers echoes a centimetre under
+    the bone.
+
+    Args:
+        cp: compounded points (mm) with their frames and beams.
+        removed: ``(N,)`` bool, True for the points the rule removed.
+
+    Returns:
+        ``(N,)`` bool, True for the removed points to give back.
+    """
+    removed = np.asarray(removed, dtype=bool)
+    back = np.zeros(len(cp), dtype=bool)
+    if not removed.any() or removed.all():
+        return back
+    lit = np.flatnonzero(removed)
+    lit = lit[~shadowed(cp.points[lit], cp.beam_direction[lit], margin_mm, depth_mm, tolerance_mm,
+                        occluders=cp.points[~removed])]
+    if len(lit) == 0:
+        return back
+    labels = _linked_groups(np.asarray(cp.points[lit], dtype=np.float64), reach_mm)
+    frames = cp.frame_index[lit]
+    for label in np.unique(labels):
+        rows = labels == label
+        if len(np.unique(frames[rows])) >= min_frames:
+            back[lit[rows]] = True
+    return back
+
+
 def drop_unconfirmed_fragments(cp: CompoundedPoints, progress: Progress = QUIET, source: str = ""
                                ) -> tuple[CompoundedPoints, FragmentReport]:
     """``cp`` without its unconfirmed fragments (:func:`unconfirmed_fragments`, defaults) and the
@@ -208,4 +252,4 @@ def drop_unconfirmed_fragments(cp: CompoundedPoints, progress: Progress = QUIET,
 
 
 __all__ = ["consistent_detections", "ConsistencyReport", "unconfirmed_fragments", "drop_unconfirmed_fragments",
-           "FragmentReport"]
+           "FragmentReport", "confirmed_by_frames"]

@@ -16,7 +16,7 @@ import numpy as np
 from ..errors import InputError
 from ..progress import QUIET, Progress
 from .compound import CompoundedPoints, compound
-from .consistency import drop_unconfirmed_fragments
+from .consistency import confirmed_by_frames, drop_unconfirmed_fragments
 from .learned import LearnedSegmenter, is_model_path
 from .model import Sweep
 from .outliers import OUTLIER_RULES, outlier_mask
@@ -79,10 +79,11 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
         detector: :class:`BoneDetector` or its options (``{field: value}``, lengths in mm).
         model_options: options of :class:`LearnedSegmenter` (``threshold``, ``input_size``, …).
         top_only: keep only the shallowest mask pixel of each scan line (the bone surface).
-        remove_outliers: drop isolated false detections (:func:`~.outliers.outlier_mask`):
+        remove_outliers: drop isolated false detections (:func:`drop_outliers`):
             ``outlier_rule`` ``local`` (local outlier factor over ``outlier_k`` neighbours at least
             ``outlier_factor``; keeps the sparse echoes of steep faces) or ``statistical`` (mean
-            neighbour distance beyond ``outlier_std`` standard deviations).
+            neighbour distance beyond ``outlier_std`` standard deviations), except those seen in
+            three frames or more outside the bone's shadow.
         remove_fragments: then drop the isolated fragments seen in one or two frames that
             neighbouring frames imaged without finding them
             (:func:`~.consistency.unconfirmed_fragments`, 4 mm).
@@ -120,14 +121,30 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
     if len(cp) == 0:
         raise InputError(f"{sweep.source or 'sweep'}: no bone found in any of the {sweep.n_frames} "
                          f"frames (segmentation: {method})")
-    if remove_outliers and len(cp) > outlier_k + 1:
-        cp = cp.subset(outlier_mask(cp.points, outlier_rule, outlier_k, outlier_std, outlier_factor))
+    if remove_outliers:
+        cp = drop_outliers(cp, outlier_rule, outlier_k, outlier_std, outlier_factor, progress)
     if remove_fragments:
         cp = drop_unconfirmed_fragments(cp, progress)[0]
     if frame_step > 1:  # report frame indices of the original sweep
         cp.frame_index = cp.frame_index * int(frame_step)
     progress.log(f"{len(cp)} bone points from {sweep.n_frames} frames ({method})")
     return cp
+
+
+def drop_outliers(cp: CompoundedPoints, rule: str = "local", k: int = 16, std_ratio: float = 2.0,
+                  factor: float = 1.5, progress: Progress = QUIET, source: str = "") -> CompoundedPoints:
+    """``cp`` without the points :func:`~.outliers.outlier_mask` removes (``rule``, ``k``,
+    ``std_ratio``, ``factor``), giving back those the sweep confirms
+    (:func:`~.consistency.confirmed_by_frames`: seen in three frames or more, none in the shadow of
+    the points kept); says on ``progress`` how many it gave back, prefixed with ``source``."""
+    if len(cp) <= k + 1:
+        return cp
+    removed = ~outlier_mask(cp.points, rule, k, std_ratio, factor)
+    back = confirmed_by_frames(cp, removed)
+    if back.any():
+        progress.log(f"{source + ': ' if source else ''}kept {int(back.sum())} of the {int(removed.sum())} "
+                     "outlying points: seen in three frames or more, none in the bone's shadow")
+    return cp.subset(~removed | back)
 
 
 def points_from_sweep(path: str | os.PathLike, progress: Progress = QUIET, **options: Any) -> np.ndarray:
