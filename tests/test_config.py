@@ -135,6 +135,11 @@ def test_modes_checked_on_construction_and_before_a_run():
     cfg.extract.trim_normal_mm = 1.0  # the fast preset fits no local planes to measure along
     with pytest.raises(InputError, match="extract.trim_normal_mm needs the local planes"):
         validate(cfg)
+    for angle in (45.0, 90.0):        # steep planes lie beyond the 60° the planes accept
+        cfg = preset("robust")
+        cfg.data.steep_planes_deg = angle
+        with pytest.raises(InputError, match=r"data.steep_planes_deg=.* \(0 \(none\) or an angle between 60"):
+            validate(cfg)
 
 
 def test_every_field_has_a_docstring_and_the_config_command_prints_it(capsys):

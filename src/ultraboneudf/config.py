@@ -132,6 +132,13 @@ class DataConfig(_Section):
     """Drop the points farther from their local plane than this many times the plane's robust spread
     (and than a tenth of ``surface_fit_mm``), e.g. false echoes in the acoustic shadow, and isolated
     points; 0 = keep all."""
+    steep_planes_deg: float = 0.0
+    """Sweeps (points with probe positions): a point whose local plane faces the probe more steeply
+    than 60° (which the planes refuse: false echoes streaking under the bone make such planes) but
+    within this angle keeps that plane's orientation for the ``surface`` distance target and the
+    support trim: the surface continues past it as past any rim (``rim_reach``), where a steep
+    face's echo faded. It is not moved onto that plane nor judged by it. 0 = such points have no
+    plane and the surface ends at them."""
     shadow_mm: float = 0.0
     """Sweeps (points with probe positions): drop the points that lie this many mm or more (up to
     10 mm) beneath another point along their own beam, within half a millimetre of it — false echoes
@@ -548,14 +555,15 @@ def _robust() -> Config:
     warm start and the far-field term regress ``u`` on the distance to the surface interpolated
     between the points across gaps up to the plane's radius, instead of the distance to the nearest
     point, which between slices lies beside the query rather than under it; past the data's rims
-    that surface goes on for half the plane radius (2 mm), where an oblique echo faded. The support
-    trim measures to the bridged surface, so bridged gaps stay closed, and also drops the faces 1 mm
-    or more from it along its normal (sheets the noise band leaves under or over the bone). ``L_OS``
-    on 256 surface points a step pins the zero level to the data where few frames saw the bone and
-    the tangent phase alone leaves the field above zero there. Leaves are kept ≥ 0.75 mm, so a small
-    bone is not meshed finer than its data resolve. The network is twice as wide as ``fast``'s
-    (4 × 128): on these points it follows the denoised surface more closely, for 1.6–1.8× the time
-    (docs/robustness.md measures each part)."""
+    that surface goes on for half the plane radius (2 mm), where an oblique echo faded, also past
+    the few echoes of a steep face (planes 60–80° from the beam orient the surface there without
+    moving the points). The support trim measures to the bridged surface, so bridged gaps stay
+    closed, and also drops the faces 1 mm or more from it along its normal (sheets the noise band
+    leaves under or over the bone). ``L_OS`` on 256 surface points a step pins the zero level to the
+    data where few frames saw the bone and the tangent phase alone leaves the field above zero
+    there. Leaves are kept ≥ 0.75 mm, so a small bone is not meshed finer than its data resolve. The
+    network is twice as wide as ``fast``'s (4 × 128): on these points it follows the denoised
+    surface more closely, for 1.6–1.8× the time (docs/robustness.md measures each part)."""
     cfg = _fast()
     cfg.model.hidden = (128, 128, 128, 128)
     cfg.data.max_voxels = 200_000
@@ -564,6 +572,7 @@ def _robust() -> Config:
     cfg.data.outlier_sigmas = 3.0
     cfg.data.bridge = 1.0
     cfg.data.rim_reach = 0.5
+    cfg.data.steep_planes_deg = 80.0
     cfg.loss.distance_target = "surface"
     cfg.loss.lambda_os = 10.0
     cfg.loss.os_rows = 256
@@ -766,6 +775,8 @@ def validate(cfg: Config, trains: bool = True) -> Config:
     if e.trim_normal_mm > 0 and d.surface_fit_mm <= 0:
         problems.append("extract.trim_normal_mm needs the local planes: set data.surface_fit_mm > 0")
     need(d.denoise >= 0, "data.denoise", "0 or more passes")
+    need(d.steep_planes_deg == 0 or 60 < d.steep_planes_deg < 90, "data.steep_planes_deg",
+         "0 (none) or an angle between 60 and 90 degrees")
     need(d.max_voxels >= 0, "data.max_voxels", "0 (no limit) or more")
     need(lo.gs_anchors >= 0, "loss.gs_anchors", "0 (all) or more")
     need(lo.os_rows >= 0, "loss.os_rows", "0 (all) or more")

@@ -355,7 +355,7 @@ def _local_plane_stage(points: np.ndarray, probe: np.ndarray | None, d: DataConf
         if probe is not None:  # sweep points: the planes must face the probe
             view = points - probe
             view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
-        planes = fit_local_planes(points, d.surface_fit_mm, view=view)
+        planes = fit_local_planes(points, d.surface_fit_mm, view=view, steep_deg=d.steep_planes_deg)
         keep = (~planes.outliers(d.outlier_sigmas, 0.1 * d.surface_fit_mm) if d.outlier_sigmas > 0
                 else np.ones(len(points), dtype=bool))
         if not keep.any():

@@ -80,6 +80,37 @@ def test_a_lone_slice_has_no_plane_unless_a_wider_radius_reaches_the_next():
     assert not fit_local_planes(slices(spacing=100.0), 4.0).valid.any()
 
 
+def tilted(angle_deg, **kw):
+    """:func:`noisy_plane` turned about y by ``angle_deg``: its normal is that far from −z."""
+    a = np.radians(angle_deg)
+    rot = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    return noisy_plane(**kw) @ rot.T, rot @ [0.0, 0.0, 1.0]
+
+
+@pytest.mark.parametrize("angle", [65.0, 75.0])
+def test_a_steep_face_gets_an_orientation_but_is_neither_moved_nor_judged(angle):
+    pts, true_normal = tilted(angle, n=8_000, noise=0.3, half=15.0)
+    down = np.tile([0.0, 0.0, -1.0], (len(pts), 1))
+    inner = np.abs(pts[:, 1]) < 10.0
+    refused = fit_local_planes(pts, 4.0, view=down)            # beyond the 60° the planes accept
+    assert not refused.valid.any() and not refused.steep.any() and not refused.gap.any()
+    pl = fit_local_planes(pts, 4.0, view=down, steep_deg=80.0)
+    assert pl.steep[inner].all() and not pl.valid.any()
+    assert np.abs(pl.normal[inner] @ true_normal).min() > 0.98
+    assert np.all(pl.gap[inner] == 4.0)
+    assert not pl.offset.any() and not pl.spread.any()
+    np.testing.assert_array_equal(pl.projected(pts), pts)
+    assert not pl.outliers(3.0)[inner].any()                   # only isolation could drop them
+    kept = pl.subset(inner).scaled(0.5)
+    assert kept.steep.all() and np.all(kept.gap == 2.0)
+    # steeper than the limit: nothing; within 60°: an ordinary plane, never a steep one
+    assert not fit_local_planes(tilted(86.0, n=8_000, noise=0.05, half=15.0)[0], 4.0, view=down,
+                                steep_deg=80.0).radius.any()
+    facing = fit_local_planes(tilted(40.0, n=8_000, noise=0.3, half=15.0)[0], 4.0, view=down,
+                              steep_deg=80.0)
+    assert facing.valid[inner].all() and not facing.steep.any()
+
+
 def test_data_surface_bridges_gaps_between_slices_but_not_past_the_rim():
     pts = slices(spacing=5.0, step=0.2, half=10.0)           # lines y = −10, −5, 0, 5, 10
     up = np.tile([0.0, 0.0, 1.0], (len(pts), 1))

@@ -16,6 +16,12 @@ steep planes, and a field that followed them would raise walls across the surfac
 fit is refused at the first radius are fitted again at twice and four times it: sparse slices
 need a wider neighbourhood to see their neighbours.
 
+With ``steep_deg`` (> 60°), a point that no radius gives a plane within 60° of its view, but
+some radius gives one within ``steep_deg``, keeps that *steep* plane's orientation and radius, so
+that the surface through the data continues past it in that plane (an echo fading on a steep face:
+the bone goes on past the last detection), without being moved onto it or judged by it
+(``offset`` 0, not ``valid``).
+
 From the fit:
 
 * ``normal``: the plane's unit normal (sign arbitrary), ``0`` where no radius gave a plane;
@@ -26,7 +32,8 @@ From the fit:
   surface) from their planes (a standard deviation for Gaussian noise, not inflated by a few
   outliers);
 * ``radius``: the radius of the accepted fit (the scale at which the data form a surface there:
-  about the gap between neighbouring slices where they are sparse), 0 where none.
+  about the gap between neighbouring slices where they are sparse), 0 where none;
+* ``steep``: the fit is a steep plane (above), not one facing the view.
 
 Neighbours come from a copy of the cloud voxelised at ``radius / 4``, so that ``max_neighbors``
 points cover the whole radius whatever the input density (a dense slice would otherwise fill the
@@ -64,17 +71,23 @@ class LocalPlanes:
     count: np.ndarray     # (N,) neighbours within the first radius (in its radius / 4 voxel copy)
     radius: np.ndarray    # (N,) radius of the accepted fit, 0 where none
     base: float = 0.0     # the first radius tried
+    steep: np.ndarray | None = None  # (N,) bool: a steep plane (orientation only); None: none
+
+    def __post_init__(self) -> None:
+        if self.steep is None:
+            self.steep = np.zeros(len(self.radius), dtype=bool)
 
     @property
     def valid(self) -> np.ndarray:
-        """(N,) bool: a plane was fitted."""
-        return self.radius > 0
+        """(N,) bool: a plane facing the view was fitted (the point's offset, spread and
+        denoising come from it)."""
+        return (self.radius > 0) & ~self.steep
 
     @property
     def gap(self) -> np.ndarray:
         """(N,) the gap scale of each point: its fit radius, at most twice the first radius (the
         four-fold fits give sparse slices a normal, but a surface across gaps that long would be
-        invented), 0 where there is no plane."""
+        invented), 0 where there is no plane (steep planes count)."""
         return np.minimum(self.radius, 2.0 * self.base)
 
     def projected(self, points: np.ndarray) -> np.ndarray:
@@ -93,38 +106,45 @@ class LocalPlanes:
     def subset(self, keep: np.ndarray) -> "LocalPlanes":
         """The fits of the points selected by a boolean mask or index array."""
         return LocalPlanes(self.normal[keep], self.offset[keep], self.spread[keep], self.count[keep],
-                           self.radius[keep], self.base)
+                           self.radius[keep], self.base, self.steep[keep])
 
     def scaled(self, factor: float) -> "LocalPlanes":
         """The same planes with every length multiplied by ``factor`` (a change of unit)."""
         return LocalPlanes(self.normal, self.offset * factor, self.spread * factor, self.count,
-                           self.radius * factor, self.base * factor)
+                           self.radius * factor, self.base * factor, self.steep)
 
 
 def fit_local_planes(points: np.ndarray, radius: float, view: np.ndarray | None = None,
-                     max_neighbors: int = 64) -> LocalPlanes:
+                     max_neighbors: int = 64, steep_deg: float = 0.0) -> LocalPlanes:
     """Robust local planes of ``points`` (N, 3), first at ``radius`` (same unit), then at twice
     and four times it where refused; ``view`` (N, 3): optional unit viewing directions (probe →
-    point). See the module docstring."""
+    point); ``steep_deg``: with ``view``, also the steep planes up to this angle from it (0: none).
+    See the module docstring."""
     pts = np.asarray(points, dtype=np.float64)
     n = len(pts)
     out = LocalPlanes(np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros(n, dtype=np.int64), np.zeros(n),
                       float(radius))
     if n == 0 or radius <= 0:
         return out
+    steep_cos = float(np.cos(np.radians(steep_deg))) if view is not None and steep_deg > 60.0 else None
+    steep_normal, steep_radius = np.zeros((n, 3)), np.zeros(n)
     todo = np.arange(n)
     for level, factor in enumerate(_WIDER):
         r = radius * factor
-        normal, offset, count, ok = _fit_at(pts, todo, r, None if view is None else view[todo],
-                                            max_neighbors)
+        fit = _fit_at(pts, todo, r, None if view is None else view[todo], max_neighbors, steep_cos)
         if level == 0:
-            out.count[:] = count
+            out.count[:] = fit.count
+        ok = fit.accepted
         done = todo[ok]
-        out.normal[done], out.offset[done] = normal[ok], offset[ok]
+        out.normal[done], out.offset[done] = fit.normal[ok], fit.offset[ok]
         out.radius[done] = r
+        first = fit.steep & (steep_radius[todo] == 0)  # the first radius with a steep plane
+        steep_normal[todo[first]], steep_radius[todo[first]] = fit.normal[first], r
         todo = todo[~ok]
         if len(todo) == 0:
             break
+    rows = todo[steep_radius[todo] > 0]  # no plane facing the view at any radius, a steep one
+    out.normal[rows], out.radius[rows], out.steep[rows] = steep_normal[rows], steep_radius[rows], True
     out.spread[:] = _local_noise(out.projected(pts), out.offset, out.valid, _NOISE_NEIGHBORS)
     return out
 
@@ -146,15 +166,14 @@ def _local_noise(on_plane: np.ndarray, offset: np.ndarray, valid: np.ndarray, k:
 
 
 def _fit_at(pts: np.ndarray, rows: np.ndarray, radius: float, view: np.ndarray | None,
-            max_neighbors: int, chunk: int = 4096):
-    """Fits of the points ``pts[rows]`` at one radius: normal, offset, neighbour count and whether
-    the plane is accepted."""
+            max_neighbors: int, steep_cos: float | None = None, chunk: int = 4096) -> "QuadricFit":
+    """Fits of the points ``pts[rows]`` at one radius (:class:`QuadricFit`)."""
     cloud = voxel_downsample(pts, radius / 4.0)
     tree = kd_tree(cloud)
     k = int(min(max_neighbors, len(cloud)))
     m = len(rows)
-    normal, offset = np.zeros((m, 3)), np.zeros(m)
-    count, ok = np.zeros(m, dtype=np.int64), np.zeros(m, dtype=bool)
+    out = QuadricFit(np.zeros((m, 3)), np.zeros(m), np.zeros(m, dtype=np.int64), np.zeros(m, dtype=bool),
+                     np.zeros(m, dtype=bool))
     for start in range(0, m, chunk):
         sl = slice(start, start + chunk)
         p = pts[rows[sl]]
@@ -162,9 +181,11 @@ def _fit_at(pts: np.ndarray, rows: np.ndarray, radius: float, view: np.ndarray |
         dist, idx = dist.reshape(len(p), k), idx.reshape(len(p), k)
         inside = np.isfinite(dist)
         nb = cloud[np.minimum(idx, len(cloud) - 1)]                        # (C, k, 3)
-        fit = robust_quadric_fit(p, nb, dist, inside, radius, None if view is None else view[sl])
-        normal[sl], offset[sl], count[sl], ok[sl] = fit.normal, fit.offset, fit.count, fit.accepted
-    return normal, offset, count, ok
+        fit = robust_quadric_fit(p, nb, dist, inside, radius, None if view is None else view[sl],
+                                 steep_cos=steep_cos)
+        for whole, part in zip(out, fit):
+            whole[sl] = part
+    return out
 
 
 class QuadricFit(NamedTuple):
@@ -174,14 +195,17 @@ class QuadricFit(NamedTuple):
     offset: np.ndarray    # (C,) signed height of each point above its neighbours' quadric
     count: np.ndarray     # (C,) neighbours used
     accepted: np.ndarray  # (C,) bool: enough neighbours, spread in both directions, facing the view
+    steep: np.ndarray     # (C,) bool: such a plane, but facing the view only within ``steep_cos``
 
 
 def robust_quadric_fit(p: np.ndarray, nb: np.ndarray, dist: np.ndarray, inside: np.ndarray,
-                       radius: float, view: np.ndarray | None = None, quadric: bool = True) -> QuadricFit:
+                       radius: float, view: np.ndarray | None = None, quadric: bool = True,
+                       steep_cos: float | None = None) -> QuadricFit:
     """The robust local fit of the module docstring for ``C`` points ``p`` (C, 3) from their
     neighbours ``nb`` (C, k, 3) at distances ``dist`` (C, k), of which ``inside`` (C, k) count.
 
-    ``quadric=False`` measures the offset from the plane instead of the quadric."""
+    ``quadric=False`` measures the offset from the plane instead of the quadric; ``steep_cos``
+    (with ``view``): the cosine of the steepest plane that counts as ``steep``."""
     base = np.where(inside, np.exp(-0.5 * (dist / (radius / 2.0)) ** 2), 0.0)
     weight = base
     for round_ in range(_ROBUST_ROUNDS + 1):
@@ -202,13 +226,17 @@ def robust_quadric_fit(p: np.ndarray, nb: np.ndarray, dist: np.ndarray, inside: 
             weight = base * np.exp(-0.5 * (r / scale) ** 2)
     count = inside.sum(axis=1)
     good = (count >= _MIN_NEIGHBORS) & (vals[:, 1] >= _SPAN * np.maximum(vals[:, 2], 1e-300))
+    steep = np.zeros(len(p), dtype=bool)
     if view is not None:
-        good &= np.abs(np.einsum("ci,ci->c", nrm, view)) >= _MAX_INCIDENCE_COS
+        facing = np.abs(np.einsum("ci,ci->c", nrm, view))
+        if steep_cos is not None:
+            steep = good & (facing < _MAX_INCIDENCE_COS) & (facing >= steep_cos)
+        good &= facing >= _MAX_INCIDENCE_COS
     own = p - centre
     offset = np.einsum("ci,ci->c", own, nrm)
     if quadric:
         offset = offset - _quadric_height(d, weight, vecs, own)
-    return QuadricFit(nrm, offset, count, good)
+    return QuadricFit(nrm, offset, count, good, steep)
 
 
 def _quadric_height(d: np.ndarray, weight: np.ndarray, vecs: np.ndarray, own: np.ndarray) -> np.ndarray:
