@@ -70,12 +70,8 @@ class LocalPlanes:
     spread: np.ndarray    # (N,) robust spread (scaled MAD) of the neighbours about the plane
     count: np.ndarray     # (N,) neighbours within the first radius (in its radius / 4 voxel copy)
     radius: np.ndarray    # (N,) radius of the accepted fit, 0 where none
+    steep: np.ndarray     # (N,) bool: the fit is a steep plane (orientation only)
     base: float = 0.0     # the first radius tried
-    steep: np.ndarray | None = None  # (N,) bool: a steep plane (orientation only); None: none
-
-    def __post_init__(self) -> None:
-        if self.steep is None:
-            self.steep = np.zeros(len(self.radius), dtype=bool)
 
     @property
     def valid(self) -> np.ndarray:
@@ -106,12 +102,12 @@ class LocalPlanes:
     def subset(self, keep: np.ndarray) -> "LocalPlanes":
         """The fits of the points selected by a boolean mask or index array."""
         return LocalPlanes(self.normal[keep], self.offset[keep], self.spread[keep], self.count[keep],
-                           self.radius[keep], self.base, self.steep[keep])
+                           self.radius[keep], self.steep[keep], self.base)
 
     def scaled(self, factor: float) -> "LocalPlanes":
         """The same planes with every length multiplied by ``factor`` (a change of unit)."""
         return LocalPlanes(self.normal, self.offset * factor, self.spread * factor, self.count,
-                           self.radius * factor, self.base * factor, self.steep)
+                           self.radius * factor, self.steep, self.base * factor)
 
 
 def fit_local_planes(points: np.ndarray, radius: float, view: np.ndarray | None = None,
@@ -123,7 +119,7 @@ def fit_local_planes(points: np.ndarray, radius: float, view: np.ndarray | None 
     pts = np.asarray(points, dtype=np.float64)
     n = len(pts)
     out = LocalPlanes(np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros(n, dtype=np.int64), np.zeros(n),
-                      float(radius))
+                      np.zeros(n, dtype=bool), float(radius))
     if n == 0 or radius <= 0:
         return out
     steep_cos = float(np.cos(np.radians(steep_deg))) if view is not None and steep_deg > 60.0 else None

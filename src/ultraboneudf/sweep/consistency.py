@@ -232,11 +232,8 @@ def confirmed_by_frames(cp: CompoundedPoints, removed: np.ndarray, reach_mm: flo
     if len(lit) == 0:
         return back
     labels = _linked_groups(np.asarray(cp.points[lit], dtype=np.float64), reach_mm)
-    frames = cp.frame_index[lit]
-    for label in np.unique(labels):
-        rows = labels == label
-        if len(np.unique(frames[rows])) >= min_frames:
-            back[lit[rows]] = True
+    seen = np.unique(np.c_[labels, cp.frame_index[lit]], axis=0)[:, 0]  # one row per (group, frame)
+    back[lit[np.bincount(seen)[labels] >= min_frames]] = True
     return back
 
 
