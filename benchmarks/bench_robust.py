@@ -61,7 +61,8 @@ LEVELS = "clean,moderate,hard,open,e6-0.5,e6-1.0,e6-1.5,e6-2.0"
 
 def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True,
                sim: dict | None = None, no_fragments: bool = False):
-    """(points (N, 3) mm, probe positions (N, 3) mm or None, truth mesh) of one bone at one level;
+    """(points (N, 3) mm, probe positions (N, 3) mm or None, truth mesh, frame indices (N,) or None)
+    of one bone at one level;
     ``align``: the sweep's frames registered to their neighbours, as ``reconstruct SWEEP`` does
     (``--no-align``: not); ``sim``: simulation options over the level's (sweep levels only);
     ``no_fragments``: keep the fragments that neighbouring frames do not confirm.
@@ -111,7 +112,7 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
     data = dict(np.load(tag / "points.npz"))
     truth = load_mesh(tag / "truth.ply")
     if level not in SWEEP_LEVELS:
-        return data["points"], None, truth
+        return data["points"], None, truth, None
     from ultraboneudf.sweep.compound import CompoundedPoints
     from ultraboneudf.sweep.consistency import drop_unconfirmed_fragments
     from ultraboneudf.sweep.points import drop_outliers
@@ -125,7 +126,7 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
         from ultraboneudf.sweep import align_frames
 
         cp, _ = align_frames(cp)
-    return cp.points, cp.probe_position, truth
+    return cp.points, cp.probe_position, truth, cp.frame_index
 
 
 def parse_sim(items: list[str]) -> dict:
@@ -143,7 +144,7 @@ def parse_sim(items: list[str]) -> dict:
     return sim
 
 
-def run_one(method: str, points, probe, truth, args: argparse.Namespace) -> tuple[dict, object]:
+def run_one(method: str, points, probe, truth, args: argparse.Namespace, frames=None) -> tuple[dict, object]:
     """One reconstruction and its scores; returns the row and the mesh (``None`` on failure)."""
     import ultraboneudf
     from ultraboneudf.errors import InputError
@@ -153,7 +154,7 @@ def run_one(method: str, points, probe, truth, args: argparse.Namespace) -> tupl
     t0 = time.perf_counter()
     try:
         rec = ultraboneudf.reconstruct(points, preset=args.preset, device=args.device, seed=args.seed,
-                                       method=method, assignments=args.set, probe_positions=probe,
+                                       method=method, assignments=args.set, probe_positions=probe, frame_index=frames,
                                        **overrides)
     except InputError as exc:  # e.g. the Poisson extra is not installed
         return {"error": str(exc)}, None
@@ -243,8 +244,8 @@ def main() -> None:
     rows = []
     for bone in args.bones.split(","):
         for level in args.levels.split(","):
-            points, probe, truth = make_input(bone, level, args.seed, args.cache, not args.no_align, sim,
-                                              args.no_fragments)
+            points, probe, truth, frames = make_input(bone, level, args.seed, args.cache, not args.no_align,
+                                                      sim, args.no_fragments)
             meshes = {}
             for method in args.methods.split(","):
                 key = {"bone": bone, "level": level, "seed": args.seed, "method": method,
@@ -261,7 +262,7 @@ def main() -> None:
                 if old is not None:
                     rows.append(old)
                     continue
-                row, mesh = run_one(method, points, probe, truth, args)
+                row, mesh = run_one(method, points, probe, truth, args, frames)
                 rows.append({**key, **row})
                 print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
                 if args.json:

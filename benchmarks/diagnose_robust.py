@@ -60,14 +60,15 @@ def main() -> None:
     import ultraboneudf
 
     torch.set_num_threads(args.threads)
-    points, probe, truth = make_input(args.bone, args.level, args.seed, args.cache)
+    points, probe, truth, frames = make_input(args.bone, args.level, args.seed, args.cache)
     print(f"{args.bone} {args.level} (seed {args.seed}): {len(points)} points, truth {truth.area:.0f} mm²")
     print("| preset | truth | share | u mm (median / P90) | abs cos(grad u, n) (median) | abs grad u (median) "
           "| to input mm (median) |")
     print("|---|---|---|---|---|---|---|")
     columns = {}
     for name in args.presets.split(","):
-        rec = ultraboneudf.reconstruct(points, preset=name, device="cpu", seed=args.seed, probe_positions=probe)
+        rec = ultraboneudf.reconstruct(points, preset=name, device="cpu", seed=args.seed, probe_positions=probe,
+                                       frame_index=frames)
         stats = field_at_truth(rec, truth, args.samples, points)
         hole = stats["to_mesh"] > 2.0
         for label, sel in (("holes", hole), ("covered", ~hole)):

@@ -147,6 +147,12 @@ class DataConfig(_Section):
     """Gaps in the data up to this × the local plane radius (``surface_fit_mm``, or the wider radius
     the fit needed, at most twice ``surface_fit_mm``) count as surface: for the ``surface`` distance target and for the support trim
     (``extract.trim_mm``, then measured to that surface instead of to the nearest point); 0 = none."""
+    frame_bridge: float = 0.0
+    """Sweeps whose frames are known (``reconstruct SWEEP``, or ``frame_index=``): a gap between two
+    consecutive frames, across their image planes (a run of lost frames), counts as surface up to
+    this × ``surface_fit_mm``; gaps inside a frame, or past a frame in between, where the probe
+    looked and found no echo, keep ``bridge``. For the ``surface`` distance target and the support
+    trim alike; 0 = as ``bridge``."""
     rim_reach: float = 0.0
     """``surface`` distance target: past the last points (the rim of the data) the surface goes on
     for this × the local plane radius in each point's plane. Where an echo fades (oblique bone) the
@@ -553,8 +559,9 @@ def _robust() -> Config:
     points more than three robust spreads from it are dropped (false echoes in the shadow, isolated
     detections) and the rest are moved onto it (noise along the beam, offsets between slices). The
     warm start and the far-field term regress ``u`` on the distance to the surface interpolated
-    between the points across gaps up to the plane's radius, instead of the distance to the nearest
-    point, which between slices lies beside the query rather than under it; past the data's rims
+    between the points across gaps up to the plane's radius (across a sweep's frames, when they are
+    known, up to 10 mm: a run of lost frames), instead of the distance to the nearest point, which
+    between slices lies beside the query rather than under it; past the data's rims
     that surface goes on for half the plane radius (2 mm), where an oblique echo faded, also past
     the few echoes of a steep face (planes 60–80° from the beam orient the surface there without
     moving the points). The support trim measures to the bridged surface, so bridged gaps stay
@@ -571,6 +578,7 @@ def _robust() -> Config:
     cfg.data.denoise = 1
     cfg.data.outlier_sigmas = 3.0
     cfg.data.bridge = 1.0
+    cfg.data.frame_bridge = 2.5
     cfg.data.rim_reach = 0.5
     cfg.data.steep_planes_deg = 80.0
     cfg.loss.distance_target = "surface"
@@ -766,7 +774,7 @@ def validate(cfg: Config, trains: bool = True) -> Config:
     need(0.0 <= lo.warm_start < 1.0, "loss.warm_start", "a fraction in [0, 1)")
     need(1 <= e.max_depth <= MAX_DEPTH, "extract.max_depth", f"between 1 and {MAX_DEPTH}")
     need(cfg.grid.resolution >= 2, "grid.resolution", "at least 2")
-    for key in ("data.voxel_size_mm", "data.surface_fit_mm", "data.bridge", "data.rim_reach",
+    for key in ("data.voxel_size_mm", "data.surface_fit_mm", "data.bridge", "data.frame_bridge", "data.rim_reach",
                 "data.shadow_mm", "data.outlier_sigmas", "extract.trim_mm", "extract.trim_normal_mm",
                 "extract.fit_mm", "extract.min_leaf_mm"):
         section, name = key.split(".")

@@ -29,6 +29,7 @@ from .errors import FitWarning, InputError
 from .evaluation.data_fit import data_fit
 from .extraction import extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
+from .geometry.frames import frame_axes
 from .geometry.normalize import Normalizer
 from .geometry.support import DataSurface
 from .geometry.surface_fit import LocalPlanes, fit_local_planes, shadowed
@@ -160,7 +161,8 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
                 seed: int = 42, method: str = "ultraboneudf", *, config: Config | None = None,
                 assignments: list[str] | tuple[str, ...] = (), progress: Progress | None = None,
                 quiet: bool = True, source: str = "points", probe_positions: Any = None,
-                checkpoint: Checkpoint | None = None, **overrides: Any) -> Reconstruction:
+                frame_index: Any = None, checkpoint: Checkpoint | None = None,
+                **overrides: Any) -> Reconstruction:
     """Reconstruct a bone surface mesh from a point cloud in millimetres.
 
     Parameters
@@ -183,14 +185,17 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
         :func:`ultraboneudf.sweep.sweep_to_points`). Voxel-averaged with the points and normalised
         with the same map. Used by methods that can (Poisson orients its normals toward the probe,
         ``poisson.orientation``); ignored by the others.
+    frame_index : optional (N,) integers, with ``probe_positions``: the frame (image) that imaged
+        each point (``CompoundedPoints.frame_index``). The surface through the data then bridges the
+        gaps between frames further than those inside one (``data.frame_bridge``).
     checkpoint : save the training's state every ``checkpoint.every`` steps to ``checkpoint.path``
         and, with ``checkpoint.resume``, continue a killed run from it (same result as an
         uninterrupted run); for the methods that train with the shared loop (not FUNSR or Poisson).
     """
     progress = progress or Progress(quiet=quiet)
     surface = fit(points_mm, preset, device, seed, method, config=config, assignments=assignments,
-                  progress=progress, source=source, probe_positions=probe_positions, checkpoint=checkpoint,
-                  **overrides)
+                  progress=progress, source=source, probe_positions=probe_positions, frame_index=frame_index,
+                  checkpoint=checkpoint, **overrides)
     rec = _finish(surface, progress)
     _warn_fit(rec, source)
     return rec
@@ -200,7 +205,7 @@ def fit(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torch.device
         seed: int = 42, method: str = "ultraboneudf", *, config: Config | None = None,
         assignments: list[str] | tuple[str, ...] = (), progress: Progress | None = None,
         quiet: bool = True, source: str = "points", probe_positions: Any = None,
-        checkpoint: Checkpoint | None = None, **overrides: Any) -> "FittedSurface":
+        frame_index: Any = None, checkpoint: Checkpoint | None = None, **overrides: Any) -> "FittedSurface":
     """The first half of :func:`reconstruct` (same arguments): pre-process, normalise and fit the
     method, without extracting a mesh. :meth:`FittedSurface.extract` then gives the surface in mm,
     as often as wanted and with any extraction settings."""
@@ -213,8 +218,9 @@ def fit(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torch.device
     points = validate_points(points_mm, source=source)
     check_units(points, source)
     probe = _validate_probe(probe_positions, len(points), source)
+    frames = _validate_frames(frame_index, probe, source)
     seed_everything(seed)
-    unit = _to_unit(points, probe, cfg, seed, source)
+    unit = _to_unit(points, probe, cfg, seed, source, frames)
     extra = {"probe": unit.probe} if entry.takes_probe else {}
     if entry.takes_planes:
         extra["planes"] = unit.planes
@@ -223,7 +229,7 @@ def fit(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torch.device
     fitted = entry.fit(unit.points, cfg, dev, seed, progress, **extra)
     return FittedSurface(method=method, preset=preset if config is None else "custom", config=cfg, device=dev,
                          seed=seed, fitted=fitted, unit=unit,
-                         support=_support(unit.points, unit.planes, cfg.data.bridge),
+                         support=_support(unit.points, unit.planes, cfg.data),
                          input=input_record(points, source), started=started)
 
 
@@ -268,7 +274,7 @@ def reconstruct_many(clouds_mm: Sequence[Any], preset: str = DEFAULT_PRESET, dev
         records.append(input_record(cloud, name))
     fitted = ubu.fit_many([u.points for u in units], cfg, dev, seed, progress, [u.planes for u in units])
     out = [_finish(FittedSurface(method="ultraboneudf", preset=preset, config=cfg, device=dev, seed=seed, fitted=f,
-                                 unit=unit, support=_support(unit.points, unit.planes, cfg.data.bridge),
+                                 unit=unit, support=_support(unit.points, unit.planes, cfg.data),
                                  input=record, started=t_start), progress)
            for f, unit, record in zip(fitted, units, records)]
     for rec, name in zip(out, names):
@@ -287,6 +293,7 @@ class _UnitCloud:
     normalizer: Normalizer
     input_points: int
     outliers: int               # points the local-plane stage dropped
+    frames: int                 # distinct sweep frames given with the points (0: none given)
     voxel_mm: float             # the voxel edge used (data.voxel_size_mm, or coarser: data.max_voxels)
     voxel_s: float
     surface_fit_s: float
@@ -305,55 +312,70 @@ def configure(preset: str, method: str, config: Config | None = None, overrides:
 
 
 def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int,
-             source: str = "points") -> _UnitCloud:
-    """Optional test noise, voxel mean (probe positions follow their points), the local-plane stage
-    in mm (outliers dropped, points moved onto their planes, normals kept), and the one
-    normalisation into unit space."""
+             source: str = "points", frames: np.ndarray | None = None) -> _UnitCloud:
+    """Optional test noise, voxel mean (probe positions and, with ``frames``, the image planes'
+    normals follow their points), the local-plane stage in mm (outliers dropped, points moved onto
+    their planes, normals kept), and the one normalisation into unit space."""
     t0 = time.perf_counter()
     d = cfg.data
     n_input = len(points)
     if d.noise_sigma_mm > 0:
         points = points + np.random.default_rng(seed + 1).normal(0.0, d.noise_sigma_mm, points.shape)
+    # the probe position, the image plane's normal and the frame's place in the sweep ride along
+    # with each point as attributes
+    attrs = probe
+    if probe is not None and frames is not None and d.frame_bridge > 0:
+        order = np.unique(frames, return_inverse=True)[1].reshape(-1, 1)
+        attrs = np.concatenate([probe, frame_axes(points, probe, frames), order], axis=1)
     voxel = d.voxel_size_mm
-    voxelised, voxel_probe = _voxel_mean(points, probe, voxel)
+    voxelised, voxel_attrs = _voxel_mean(points, attrs, voxel)
     while d.max_voxels and len(voxelised) > d.max_voxels and voxel > 0:
         # a surface's voxel count falls with the square of the edge; 1.2× at least, so it converges
         voxel *= max(1.2, float(np.sqrt(len(voxelised) / d.max_voxels)))
-        voxelised, voxel_probe = _voxel_mean(points, probe, voxel)
+        voxelised, voxel_attrs = _voxel_mean(points, attrs, voxel)
     t1 = time.perf_counter()
     planes, outliers = None, 0
     if d.surface_fit_mm > 0:
-        voxelised, voxel_probe, planes, outliers = _local_plane_stage(voxelised, voxel_probe, d, source)
+        voxelised, voxel_attrs, planes, outliers = _local_plane_stage(voxelised, voxel_attrs, d, source)
+        if voxel_attrs is not None and voxel_attrs.shape[1] == 7:
+            axis = voxel_attrs[:, 3:6]  # averaged unit vectors, made unit again (zero stays zero)
+            axis = axis / np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
+            # a voxel shared by two frames (rare at 0.1 mm) takes one of them
+            planes = dataclasses.replace(planes, frame_axis=axis, frame_order=np.rint(voxel_attrs[:, 6]))
     elif d.denoise or d.outlier_sigmas > 0 or d.shadow_mm > 0:
         raise InputError("data.denoise, data.outlier_sigmas and data.shadow_mm need the local planes: "
                          "set data.surface_fit_mm > 0")
     normalizer = Normalizer.fit(voxelised)
+    voxel_probe = None if voxel_attrs is None else voxel_attrs[:, :3]
     return _UnitCloud(points=normalizer.forward(voxelised),
                       probe=None if voxel_probe is None else normalizer.forward(voxel_probe),
                       planes=None if planes is None else planes.scaled(1.0 / normalizer.scale),
-                      normalizer=normalizer, input_points=n_input, outliers=outliers, voxel_mm=voxel,
+                      normalizer=normalizer, input_points=n_input, outliers=outliers,
+                      frames=0 if frames is None else len(np.unique(frames)), voxel_mm=voxel,
                       voxel_s=t1 - t0, surface_fit_s=time.perf_counter() - t1)
 
 
-def _voxel_mean(points: np.ndarray, probe: np.ndarray | None, voxel: float
+def _voxel_mean(points: np.ndarray, attrs: np.ndarray | None, voxel: float
                 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Voxel mean of the points (mm); each voxel's probe position is the mean of its points'."""
-    if probe is None:
+    """Voxel mean of the points (mm); each voxel's attributes (probe position, ...) are the mean
+    of its points'."""
+    if attrs is None:
         return voxel_downsample(points, voxel), None
-    return voxel_downsample_with(points, probe, voxel)
+    return voxel_downsample_with(points, attrs, voxel)
 
 
-def _local_plane_stage(points: np.ndarray, probe: np.ndarray | None, d: DataConfig, source: str
+def _local_plane_stage(points: np.ndarray, attrs: np.ndarray | None, d: DataConfig, source: str
                        ) -> tuple[np.ndarray, np.ndarray | None, LocalPlanes, int]:
     """Robust local planes of the voxelised ``points`` (N, 3) mm, ``data.denoise`` times (at least
     once): drop the outliers (``outlier_sigmas``), move the points onto their planes (``denoise``),
-    drop the echoes in the shadow of others along their beam (``shadow_mm``; needs ``probe``).
-    Returns the points, their probe positions, their last planes and the number dropped."""
+    drop the echoes in the shadow of others along their beam (``shadow_mm``; needs the probe
+    positions, ``attrs[:, :3]``). Returns the points, their attributes, their last planes and the
+    number dropped."""
     planes, dropped = None, 0
     for _ in range(max(1, d.denoise)):
         view = None
-        if probe is not None:  # sweep points: the planes must face the probe
-            view = points - probe
+        if attrs is not None:  # sweep points: the planes must face the probe
+            view = points - attrs[:, :3]
             view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
         planes = fit_local_planes(points, d.surface_fit_mm, view=view, steep_deg=d.steep_planes_deg)
         keep = (~planes.outliers(d.outlier_sigmas, 0.1 * d.surface_fit_mm) if d.outlier_sigmas > 0
@@ -368,8 +390,8 @@ def _local_plane_stage(points: np.ndarray, probe: np.ndarray | None, d: DataConf
             keep[rows[shadowed(points[rows], view[rows], d.shadow_mm)]] = False
         dropped += int((~keep).sum())
         points, planes = points[keep], planes.subset(keep)
-        probe = None if probe is None else probe[keep]
-    return points, probe, planes, dropped
+        attrs = None if attrs is None else attrs[keep]
+    return points, attrs, planes, dropped
 
 
 @dataclass
@@ -464,7 +486,8 @@ def _finish(surface: FittedSurface, progress: Progress) -> Reconstruction:
     timings["total_s"] = time.perf_counter() - surface.started
     counts = {"input_points": unit.input_points, "voxelized_points": len(unit.points) + unit.outliers,
               "voxel_size_mm": unit.voxel_mm,
-              "outliers_removed": unit.outliers, "extract_depth": extract_cfg.max_depth, **fitted.counts,
+              "outliers_removed": unit.outliers, "frames": unit.frames, "extract_depth": extract_cfg.max_depth,
+              **fitted.counts,
               "vertices": 0 if mesh is None else len(mesh.vertices),
               "faces": 0 if mesh is None else len(mesh.faces), "trimmed_faces": trimmed}
     quality = mesh_quality(mesh) if mesh is not None else {}
@@ -486,13 +509,14 @@ def resolve_leaf_size(cfg: ExtractConfig, normalizer: Normalizer) -> ExtractConf
     return dataclasses.replace(cfg, max_depth=depth)
 
 
-def _support(points: np.ndarray, planes: LocalPlanes | None, bridge: float) -> np.ndarray | DataSurface:
+def _support(points: np.ndarray, planes: LocalPlanes | None, d: DataConfig) -> np.ndarray | DataSurface:
     """The support trim's reference: the unit-space points, or with local planes the surface
-    through them, bridged across their gaps with ``data.bridge`` > 0 (its distance is the distance
-    to the nearest point without; its normals serve ``extract.trim_normal_mm``)."""
+    through them, bridged across their gaps with ``data.bridge`` > 0 and across a sweep's frames with
+    ``data.frame_bridge`` (its distance is the distance to the nearest point without; its normals
+    serve ``extract.trim_normal_mm``)."""
     if planes is None:
         return points
-    return DataSurface(points, planes.normal, bridge * planes.gap)
+    return DataSurface.from_planes(points, planes, d.bridge, frame_bridge=d.frame_bridge)
 
 
 def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, normalizer: Normalizer,
@@ -506,6 +530,22 @@ def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray | DataS
                               trim_normal_mm / normalizer.scale)
     removed = len(unit_mesh.faces) - (0 if trimmed is None else len(trimmed.faces))
     return (None if trimmed is None else normalizer.inverse_mesh(trimmed)), removed
+
+
+def _validate_frames(frame_index: Any, probe: np.ndarray | None, source: str) -> np.ndarray | None:
+    """``frame_index`` as an (N,) int64 array matching the N probe positions, or ``None``."""
+    if frame_index is None:
+        return None
+    if probe is None:
+        raise InputError(f"{source}: frame indices need the probe positions of the points too")
+    try:
+        frames = np.asarray(frame_index)
+    except (TypeError, ValueError):
+        frames = np.asarray([])
+    if frames.shape != (len(probe),) or not np.issubdtype(frames.dtype, np.integer):
+        raise InputError(f"{source}: frame indices must be N integers, one per point (N = {len(probe)}), "
+                         f"got shape {frames.shape} of {frames.dtype}")
+    return frames.astype(np.int64)
 
 
 def _validate_probe(probe_positions: Any, n_points: int, source: str) -> np.ndarray | None:

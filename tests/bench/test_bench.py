@@ -220,3 +220,18 @@ def test_the_ray_engine_gives_the_same_table_and_retries_a_killed_worker(dataset
     strip = lambda rows: [{k: v for k, v in r.items() if not k.endswith("_s")} for r in rows]  # noqa: E731
     assert strip(finished_rows(remote)) == strip(finished_rows(local))
     assert (remote / "results.csv").read_text().count("\n") == 3
+
+
+def test_a_dataset_cloud_brings_its_probe_positions_and_frames(tmp_path):
+    from ultraboneudf.bench.runner import _read_input
+
+    rng = np.random.default_rng(0)
+    points, probe = rng.uniform(0, 50, (300, 3)), rng.uniform(0, 50, (300, 3))
+    frames = np.repeat(np.arange(3), 100)
+    np.savez(tmp_path / "sweep.npz", points=points, probe=probe, frame=frames)
+    np.savez(tmp_path / "older.npz", points=points, probe=probe)       # written before frames were kept
+    got = _read_input(tmp_path / "sweep.npz")
+    np.testing.assert_array_equal(got[0], points)
+    np.testing.assert_array_equal(got[1], probe)
+    np.testing.assert_array_equal(got[2], frames)
+    assert _read_input(tmp_path / "older.npz")[2] is None

@@ -164,6 +164,7 @@ def test_bone_and_spine_reconstruct_end_to_end(tmp_path, capsys, name, config):
     assert sweep["pose_chain"]["chain"] == "ReferenceToTracker⁻¹ · ProbeToTracker · ImageToProbe"
     assert sweep["pose_chain"]["reference_frame"] == "Reference"
     assert sweep["points"]["count"] == side["counts"]["input_points"] > 1000
+    assert side["counts"]["frames"] == sweep["points"]["frames_with_bone"] == 21  # the frames went along
     assert sweep["outlier_removal"] == {"rule": "local", "k": 16, "factor": 1.5}
     assert sweep["fragments"]["groups"] >= 1 and sweep["fragments"]["removed"] >= 0
     assert sweep["shear_deg"] == pytest.approx(-2.745 if name == SPINE else 0.0, abs=2e-3)

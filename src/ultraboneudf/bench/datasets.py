@@ -32,9 +32,11 @@ def _meshes(folder: Path) -> list[Path]:
     return found
 
 
-def _save_points(path: Path, points: np.ndarray, probe: np.ndarray | None = None) -> None:
+def _save_points(path: Path, points: np.ndarray, probe: np.ndarray | None = None,
+                 frames: np.ndarray | None = None) -> None:
     buf = io.BytesIO()
-    np.savez(buf, points=points, **({} if probe is None else {"probe": probe}))
+    np.savez(buf, points=points, **({} if probe is None else {"probe": probe}),
+             **({} if frames is None else {"frame": frames}))
     atomic_write_bytes(path, buf.getvalue())
 
 
@@ -61,7 +63,7 @@ def make_dataset(kind: str, source: str | os.PathLike, out: str | os.PathLike, *
             for mesh_path, seed in jobs:
                 mesh = load_mesh(mesh_path)
                 name = mesh_path.stem if kind != "simsweep" else f"{mesh_path.stem}_s{seed}"
-                probe = None
+                probe = frames = None
                 if kind == "openbone":
                     truth = facing_surface(mesh, (0.0, 0.0, 1.0))
                     points = trimesh.sample.sample_surface(truth, samples, seed=seed)[0]
@@ -75,7 +77,8 @@ def make_dataset(kind: str, source: str | os.PathLike, out: str | os.PathLike, *
                     sim = simulate_sweep(mesh, config_with_noise(level, seed=seed))
                     cp, _ = align_frames(sweep_to_points(sim.sweep, segment="masks"))
                     points, probe, truth = cp.points, cp.probe_position, sim.visible_mesh
-                _save_points(out / f"{name}.npz", points, probe)
+                    frames = cp.frame_index
+                _save_points(out / f"{name}.npz", points, probe, frames)
                 save_mesh(truth, out / f"{name}_gt.ply")
                 units.append(Unit(name, mesh_path.stem, out / f"{name}.npz", out / f"{name}_gt.ply"))
                 advance()

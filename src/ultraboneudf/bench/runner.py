@@ -193,12 +193,13 @@ def _run_cell(cell: Cell, folder: Path, device: str, samples: int) -> dict[str, 
                            "overrides": " ".join(cell.overrides), "version": __version__,
                            "gt": str(cell.unit.gt)}
     try:
-        points, probe = _read_input(cell.unit.input)
+        points, probe, frames = _read_input(cell.unit.input)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the data-fit figures are in the row
             rec = ultraboneudf.reconstruct(points, preset=cell.preset, device=device, seed=cell.seed,
                                            method=cell.method, assignments=list(cell.overrides),
-                                           source=str(cell.unit.input), probe_positions=probe)
+                                           source=str(cell.unit.input), probe_positions=probe,
+                                           frame_index=frames)
         resolved = json.dumps(rec.config.to_dict(), sort_keys=True).encode()
         row["config_hash"] = hashlib.sha256(resolved).hexdigest()[:16]
         row.update({k: rec.timings.get(k) for k in ("preprocess_s", "train_s", "extract_s", "total_s")})
@@ -223,21 +224,22 @@ def _run_cell(cell: Cell, folder: Path, device: str, samples: int) -> dict[str, 
     return row
 
 
-def _read_input(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Points (mm) and, from an ``.npz`` that has them or a sweep, the probe positions (a sweep's
-    frames registered to each other, as ``reconstruct SWEEP`` does)."""
+def _read_input(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Points (mm) and, from an ``.npz`` that has them or a sweep, the probe positions and frame
+    indices (a sweep's frames registered to each other, as ``reconstruct SWEEP`` does)."""
     from ..io import load_points
 
     if path.suffix.lower() == ".npz":
         with np.load(path) as data:
             if "probe" in data.files and "points" in data.files:
-                return load_points(path), np.asarray(data["probe"], dtype=np.float64)
+                frames = np.asarray(data["frame"]) if "frame" in data.files else None
+                return load_points(path), np.asarray(data["probe"], dtype=np.float64), frames
     if path.is_dir() or path.suffix.lower() in (".mha", ".mhd", ".nrrd"):
         from ..sweep import align_frames, sweep_to_points
 
         cp, _ = align_frames(sweep_to_points(path))
-        return cp.points, cp.probe_position
-    return load_points(path), None
+        return cp.points, cp.probe_position, cp.frame_index
+    return load_points(path), None, None
 
 
 def finished_rows(out: Path) -> list[dict[str, Any]]:

@@ -74,11 +74,11 @@ def checkpoint_path(output: Path) -> Path:
     return output.with_name(output.name + ".ckpt")
 
 
-def read_input(path: Path, args: argparse.Namespace,
-               progress: Progress) -> tuple[np.ndarray, np.ndarray | None, dict | None]:
+def read_input(path: Path, args: argparse.Namespace, progress: Progress
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict | None]:
     """Points (mm) from a cloud file, or compounded from a sweep (a folder or a sequence file); for
-    a sweep also the probe position of each point (mm, same frame) and what the sweep gave
-    (pose chain, spacing, shear, segmentation; for the sidecar), else ``None``."""
+    a sweep also the probe position of each point (mm, same frame), its frame index and what the
+    sweep gave (pose chain, spacing, shear, segmentation; for the sidecar), else ``None``."""
     from ..io import load_points
     from ..sweep import is_sweep_path
 
@@ -87,12 +87,12 @@ def read_input(path: Path, args: argparse.Namespace,
             raise InputError(f"{path}: --units applies to point cloud files; a sweep's geometry comes "
                              f"from its calibration (mm)")
         res = sweep_points(path, args, progress)
-        return res.points.points, res.points.probe_position, res.info
+        return res.points.points, res.points.probe_position, res.points.frame_index, res.info
     given = sweep_options_given(args)
     if given:
         raise InputError(f"{path}: {', '.join(given)} {'apply' if len(given) > 1 else 'applies'} to "
                          f"tracked sweeps, not to a point cloud file")
-    return load_points(path) * UNITS_MM[args.units], None, None
+    return load_points(path) * UNITS_MM[args.units], None, None, None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -113,10 +113,10 @@ def run(args: argparse.Namespace) -> int:
         checkpoint = Checkpoint(checkpoint_path(output), every=args.checkpoint_every or 0, resume=args.resume)
         if args.resume and not checkpoint.path.exists():
             progress.log(f"no checkpoint {checkpoint.path} yet: training starts at step 0")
-    points, probe, sweep_info = read_input(args.input, args, progress)
+    points, probe, frames, sweep_info = read_input(args.input, args, progress)
     rec = reconstruct(points, preset=args.preset, device=args.device, seed=args.seed, method=args.method,
                       assignments=args.assignments, progress=progress, source=str(args.input),
-                      probe_positions=probe, checkpoint=checkpoint, **overrides)
+                      probe_positions=probe, frame_index=frames, checkpoint=checkpoint, **overrides)
     if rec.mesh is None:
         print(f"ultraboneudf reconstruct: no surface was found in {args.input}; nothing written "
               "(see the loss history with --set train.iters=… or try another preset)", file=sys.stderr)

@@ -19,6 +19,14 @@ chord's sagitta. Elsewhere — beyond the rim of an open surface, or with no pla
 distance to a disc of radius ``reach`` around the nearest point in its plane (0: the point itself).
 So gaps up to ``bridge`` close, and rims stay within ``reach`` of where the data end.
 
+A sweep's gaps *between* frames — the frame spacing, and runs of frames lost when the probe lifted
+or tracking dropped — are places the probe did not look, not places it found no bone
+(:mod:`~ultraboneudf.geometry.frames`). Given each point's ``frame_axis`` (the normal of its image
+plane) and ``frame_order`` (its frame's place in the sweep), a gap whose chord — from the nearest
+point to the opposite one — joins two consecutive frames and runs across their image planes
+(within 45° of that normal) closes when that chord is at most ``frame_bridge`` long. Gaps inside a
+frame keep ``bridge``, and so do gaps that frames in between looked into and found no bone in.
+
 :meth:`DataSurface.distances` also gives the part of that distance along the surface's normal: over
 a gap the same distance, elsewhere the height above the nearest point's plane (0 where it has no
 plane). A sheet that runs parallel to the data a millimetre under them is far along the normal; a
@@ -27,11 +35,17 @@ surface continued in its own plane past a rim is not.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from .neighbors import kd_tree
 
+if TYPE_CHECKING:
+    from .surface_fit import LocalPlanes
+
 _PLANES_AGREE_DEG = 10.0  # two planes within this angle interpolate a gap; from twice it, the chord
+_ACROSS_FRAMES_COS = float(np.cos(np.radians(45.0)))  # a chord this close to the frame axis spans frames
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -42,17 +56,37 @@ def _unit(v: np.ndarray) -> np.ndarray:
 class DataSurface:
     """The surface through ``points`` (N, 3) with unit ``normals`` (N, 3; zero rows: no plane, sign
     arbitrary), bridging gaps up to ``bridge`` (N,) long (0: none) and reaching ``reach`` (N,) or a
-    scalar past the rims; lengths in the points' unit."""
+    scalar past the rims; lengths in the points' unit. ``frame_axis`` (N, 3; zero rows: unknown),
+    ``frame_order`` (N,) and ``frame_bridge``: gaps between consecutive frames of a sweep close up to
+    that length (module docstring)."""
 
     def __init__(self, points: np.ndarray, normals: np.ndarray, bridge: np.ndarray,
-                 reach: np.ndarray | float = 0.0, k: int = 8) -> None:
+                 reach: np.ndarray | float = 0.0, k: int = 8, frame_axis: np.ndarray | None = None,
+                 frame_order: np.ndarray | None = None, frame_bridge: float = 0.0) -> None:
         self.points = np.asarray(points, dtype=np.float64)
         self.normals = np.asarray(normals, dtype=np.float64)
         planar = np.any(self.normals != 0.0, axis=1)
         self.bridge = np.where(planar, np.asarray(bridge, dtype=np.float64), 0.0)
         self.reach = np.where(planar, np.broadcast_to(np.asarray(reach, dtype=np.float64), planar.shape), 0.0)
+        self.frame_axis = None
+        if frame_axis is not None and frame_order is not None and frame_bridge > 0:
+            self.frame_axis = np.where(planar[:, None], np.asarray(frame_axis, dtype=np.float64), 0.0)
+            self.frame_order = np.asarray(frame_order, dtype=np.float64)
+            # a frame gap never closes shorter than an ordinary one
+            self.frame_bridge = np.where(np.any(self.frame_axis != 0.0, axis=1),
+                                         np.maximum(self.bridge, frame_bridge), self.bridge)
         self.k = int(min(k, len(self.points)))
         self.tree = kd_tree(self.points)
+
+    @classmethod
+    def from_planes(cls, points: np.ndarray, planes: "LocalPlanes", bridge: float, reach: float = 0.0,
+                    frame_bridge: float = 0.0) -> "DataSurface":
+        """The surface through ``points`` (N, 3) with their local ``planes``: gaps bridged up to
+        ``bridge`` × each point's gap scale (``planes.gap``), rims reached ``reach`` × it, and, where
+        the planes know the sweep's frames (``planes.frame_axis``, ``planes.frame_order``), gaps
+        between consecutive frames bridged up to ``frame_bridge`` × the planes' first radius."""
+        return cls(points, planes.normal, bridge * planes.gap, reach * planes.gap, frame_axis=planes.frame_axis,
+                   frame_order=planes.frame_order, frame_bridge=frame_bridge * planes.base)
 
     def distance(self, x: np.ndarray, chunk: int = 65_536) -> np.ndarray:
         """(M,) distance from each row of ``x`` (M, 3) to the surface (see the module docstring)."""
@@ -77,14 +111,22 @@ class DataSurface:
         toward = self.points[first] - x
         toward -= np.einsum("mi,mi->m", toward, n)[:, None] * n
         toward = _unit(toward)
-        _, far = self.tree.query(x - 0.5 * self.bridge[first, None] * toward, k=1, workers=-1)
-        idx = np.concatenate([idx, np.asarray(far).reshape(-1, 1)], axis=1)
-        offset = self.points[idx] - x[:, None]                           # (M, k + 1, 3)
+        lengths = [self.bridge] if self.frame_axis is None else [self.bridge, self.frame_bridge]
+        far = [self.tree.query(x - 0.5 * length[first, None] * toward, k=1, workers=-1)[1] for length in lengths]
+        idx = np.concatenate([idx] + [np.asarray(f).reshape(-1, 1) for f in far], axis=1)
+        offset = self.points[idx] - x[:, None]                           # (M, k + 1 or 2, 3)
         dist = np.linalg.norm(offset, axis=2)
         across = np.einsum("mki,mi->mk", offset, n)
         inplane = offset - across[..., None] * n[:, None]
         # neighbours on the other side of x from the nearest, within the nearest's gap length
-        opposite = (np.einsum("mki,mi->mk", inplane, inplane[:, 0]) < 0) & (dist <= self.bridge[first, None])
+        within = dist <= self.bridge[first, None]
+        if self.frame_axis is not None:  # or in the next frame, a gap up to the frame bridge long
+            step = offset - offset[:, :1]                                # from the nearest point
+            length = np.linalg.norm(step, axis=2)
+            spans = np.abs(np.einsum("mki,mi->mk", step, self.frame_axis[first])) >= _ACROSS_FRAMES_COS * length
+            spans &= np.abs(self.frame_order[idx] - self.frame_order[first, None]) == 1
+            within |= spans & (length <= self.frame_bridge[first, None])
+        opposite = (np.einsum("mki,mi->mk", inplane, inplane[:, 0]) < 0) & within
         opposite[:, 0] = False
         has = opposite.any(axis=1)
         j = np.argmax(opposite, axis=1)                                  # the closest opposite one

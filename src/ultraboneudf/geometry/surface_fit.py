@@ -33,7 +33,11 @@ From the fit:
   outliers);
 * ``radius``: the radius of the accepted fit (the scale at which the data form a surface there:
   about the gap between neighbouring slices where they are sparse), 0 where none;
-* ``steep``: the fit is a steep plane (above), not one facing the view.
+* ``steep``: the fit is a steep plane (above), not one facing the view;
+* ``frame_axis``, ``frame_order``: for a sweep whose frames are known, the normal of the image
+  plane that imaged each point (:func:`~ultraboneudf.geometry.frames.frame_axes`) and that frame's
+  place among the sweep's frames (0, 1, …); the pipeline adds them, the fit does not need them;
+  else ``None``.
 
 Neighbours come from a copy of the cloud voxelised at ``radius / 4``, so that ``max_neighbors``
 points cover the whole radius whatever the input density (a dense slice would otherwise fill the
@@ -72,6 +76,8 @@ class LocalPlanes:
     radius: np.ndarray    # (N,) radius of the accepted fit, 0 where none
     steep: np.ndarray     # (N,) bool: the fit is a steep plane (orientation only)
     base: float = 0.0     # the first radius tried
+    frame_axis: np.ndarray | None = None   # (N, 3) sweeps: the image plane's normal (geometry.frames)
+    frame_order: np.ndarray | None = None  # (N,) sweeps: the frame's place among the sweep's frames
 
     @property
     def valid(self) -> np.ndarray:
@@ -102,12 +108,15 @@ class LocalPlanes:
     def subset(self, keep: np.ndarray) -> "LocalPlanes":
         """The fits of the points selected by a boolean mask or index array."""
         return LocalPlanes(self.normal[keep], self.offset[keep], self.spread[keep], self.count[keep],
-                           self.radius[keep], self.steep[keep], self.base)
+                           self.radius[keep], self.steep[keep], self.base,
+                           None if self.frame_axis is None else self.frame_axis[keep],
+                           None if self.frame_order is None else self.frame_order[keep])
 
     def scaled(self, factor: float) -> "LocalPlanes":
         """The same planes with every length multiplied by ``factor`` (a change of unit)."""
         return LocalPlanes(self.normal, self.offset * factor, self.spread * factor, self.count,
-                           self.radius * factor, self.steep, self.base * factor)
+                           self.radius * factor, self.steep, self.base * factor, self.frame_axis,
+                           self.frame_order)
 
 
 def fit_local_planes(points: np.ndarray, radius: float, view: np.ndarray | None = None,

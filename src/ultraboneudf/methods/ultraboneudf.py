@@ -72,8 +72,7 @@ def prepare(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
             if cfg.loss.distance_target == "surface":
                 own = planes if rows is None else planes.subset(rows)
                 data.static_distance = as_t(
-                    DataSurface(surface, own.normal, d.bridge * own.gap, d.rim_reach * own.gap)
-                    .distance(queries))
+                    DataSurface.from_planes(surface, own, d.bridge, d.rim_reach, d.frame_bridge).distance(queries))
         clock("static_nn_s")
         advance()
     return data
