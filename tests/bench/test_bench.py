@@ -235,3 +235,12 @@ def test_a_dataset_cloud_brings_its_probe_positions_and_frames(tmp_path):
     np.testing.assert_array_equal(got[1], probe)
     np.testing.assert_array_equal(got[2], frames)
     assert _read_input(tmp_path / "older.npz")[2] is None
+    from ultraboneudf.io import encode_points
+    from ultraboneudf.sweep.compound import CompoundedPoints
+
+    cp = CompoundedPoints(points=points, frame_index=frames, probe_position=probe,
+                          beam_direction=np.tile([0.0, 0.0, -1.0], (300, 1)), pixel=np.zeros((300, 2)))
+    (tmp_path / "cloud.ply").write_bytes(encode_points(tmp_path / "cloud.ply", cp))  # as sweep2points
+    got = _read_input(tmp_path / "cloud.ply")
+    np.testing.assert_array_equal(got[1], probe)
+    np.testing.assert_array_equal(got[2], frames)

@@ -130,3 +130,38 @@ def test_an_os_error_while_reading_is_one_line(tmp_path, monkeypatch):
     monkeypatch.setitem(uio.POINT_READERS, ".xyz", failing)
     with pytest.raises(InputError, match=r"locked.xyz: cannot read the file \(Input/output error\)"):
         load_points(path)
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".npz"])
+def test_a_cloud_written_from_a_sweep_gives_back_its_probe_positions_and_frames(tmp_path, suffix):
+    from ultraboneudf.io import encode_points, load_sweep_columns
+    from ultraboneudf.sweep.compound import CompoundedPoints
+
+    rng = np.random.default_rng(0)
+    n = 500
+    cp = CompoundedPoints(points=rng.uniform(0, 40, (n, 3)), frame_index=np.repeat(np.arange(5), 100),
+                          probe_position=rng.uniform(0, 40, (n, 3)),
+                          beam_direction=np.tile([0.0, 0.0, -1.0], (n, 1)), pixel=rng.uniform(0, 100, (n, 2)))
+    path = tmp_path / f"cloud{suffix}"
+    path.write_bytes(encode_points(path, cp))
+    points = load_points(path)
+    probe, frames = load_sweep_columns(path, len(points))
+    np.testing.assert_array_equal(points, cp.points)
+    np.testing.assert_array_equal(probe, cp.probe_position)
+    np.testing.assert_array_equal(frames, cp.frame_index)
+
+
+def test_clouds_without_sweep_columns_give_none_and_bad_columns_name_the_file(tmp_path):
+    from ultraboneudf.io import load_sweep_columns
+
+    pts = np.random.default_rng(1).uniform(0, 40, (200, 3))
+    trimesh.PointCloud(pts).export(tmp_path / "plain.ply")
+    np.savez(tmp_path / "plain.npz", points=pts)
+    np.savetxt(tmp_path / "plain.xyz", pts)
+    np.savez(tmp_path / "frames_only.npz", points=pts, frame_index=np.zeros(200, dtype=int))
+    for name in ("plain.ply", "plain.npz", "plain.xyz", "frames_only.npz"):
+        assert load_sweep_columns(tmp_path / name, 200) == (None, None)
+    np.savez(tmp_path / "short.npz", points=pts, probe_position=pts[:-1])
+    with pytest.raises(InputError, match=r"short.npz: the probe positions must be one row of three per "
+                                         r"point \(200\), got shape \(199, 3\)"):
+        load_sweep_columns(tmp_path / "short.npz", 200)

@@ -172,3 +172,30 @@ def test_bone_and_spine_reconstruct_end_to_end(tmp_path, capsys, name, config):
 
     mesh = trimesh.load(out, process=False)
     assert len(mesh.faces) == side["counts"]["faces"]
+
+
+def test_reconstructing_the_cloud_sweep2points_wrote_equals_reconstructing_the_sweep(tmp_path, capsys):
+    """The PLY that ``sweep2points`` writes carries each point's probe position and frame, and
+    ``reconstruct`` takes them up: the robust preset's planes face the probe and bridge the gaps
+    between frames exactly as for the sweep itself, so the two meshes are the same."""
+    import trimesh
+
+    cloud = tmp_path / "bone.ply"
+    assert main(["sweep2points", str(PLUS / BONE), "--calibration", str(PLUS / BONE_CFG), "-o", str(cloud),
+                 "--quiet"]) == 0
+    run = ["--iters", "300", "--set", "extract.max_depth=6", "--quiet"]
+    assert main(["reconstruct", str(PLUS / BONE), "--calibration", str(PLUS / BONE_CFG),
+                 "-o", str(tmp_path / "from_sweep.ply"), *run]) == 0
+    assert main(["reconstruct", str(cloud), "-o", str(tmp_path / "from_cloud.ply"), *run]) == 0
+    a = trimesh.load(tmp_path / "from_sweep.ply", process=False)
+    b = trimesh.load(tmp_path / "from_cloud.ply", process=False)
+    np.testing.assert_array_equal(a.faces, b.faces)
+    np.testing.assert_allclose(a.vertices, b.vertices, atol=1e-5)
+    side = json.loads(sidecar_path(tmp_path / "from_cloud.ply").read_text())
+    assert side["input"]["sweep_columns"] == ["probe", "frame"] and side["counts"]["frames"] == 21
+    # the x, y, z alone (a cloud from another tool) carry neither
+    xyz = tmp_path / "bone.xyz"
+    np.savetxt(xyz, trimesh.load(cloud, process=False).vertices)
+    assert main(["reconstruct", str(xyz), "-o", str(tmp_path / "from_xyz.ply"), *run]) == 0
+    side = json.loads(sidecar_path(tmp_path / "from_xyz.ply").read_text())
+    assert "sweep_columns" not in side["input"] and side["counts"]["frames"] == 0

@@ -225,9 +225,10 @@ def _run_cell(cell: Cell, folder: Path, device: str, samples: int) -> dict[str, 
 
 
 def _read_input(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """Points (mm) and, from an ``.npz`` that has them or a sweep, the probe positions and frame
-    indices (a sweep's frames registered to each other, as ``reconstruct SWEEP`` does)."""
-    from ..io import load_points
+    """Points (mm) and, from an ``.npz`` that has them, a cloud ``sweep2points`` wrote or a sweep, the
+    probe positions and frame indices (a sweep's frames registered to each other, as ``reconstruct
+    SWEEP`` does)."""
+    from ..io import load_points, load_sweep_columns
 
     if path.suffix.lower() == ".npz":
         with np.load(path) as data:
@@ -239,7 +240,8 @@ def _read_input(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray |
 
         cp, _ = align_frames(sweep_to_points(path))
         return cp.points, cp.probe_position, cp.frame_index
-    return load_points(path), None, None
+    points = load_points(path)
+    return (points, *load_sweep_columns(path, len(points)))
 
 
 def finished_rows(out: Path) -> list[dict[str, Any]]:

@@ -52,7 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "--calibration, Slicer .seq.nrrd). Writes OUT and a JSON sidecar OUT.json "
                     "(bone.ply → bone.ply.json) with the resolved configuration, timings, counts and, "
                     "for a sweep, its pose chain, spacing, segmentation and frame registration.")
-    p.add_argument("input", type=Path, help="point cloud file or tracked sweep")
+    p.add_argument("input", type=Path, help="point cloud file or tracked sweep (a cloud that sweep2points "
+                                            "wrote, .ply or .npz, brings each point's probe position and "
+                                            "frame along, as the sweep would)")
     p.add_argument("-o", "--output", type=Path, required=True, help="output mesh (.ply, .obj or .stl)")
     p.add_argument("--units", default="mm", choices=list(UNITS_MM),
                    help="unit of a point cloud file's coordinates; they are converted to mm, and the "
@@ -77,9 +79,10 @@ def checkpoint_path(output: Path) -> Path:
 def read_input(path: Path, args: argparse.Namespace, progress: Progress
                ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict | None]:
     """Points (mm) from a cloud file, or compounded from a sweep (a folder or a sequence file); for
-    a sweep also the probe position of each point (mm, same frame), its frame index and what the
-    sweep gave (pose chain, spacing, shear, segmentation; for the sidecar), else ``None``."""
-    from ..io import load_points
+    a sweep, or a cloud ``sweep2points`` wrote with them, also the probe position of each point (mm,
+    same frame) and its frame index; for a sweep what it gave (pose chain, spacing, shear,
+    segmentation; for the sidecar). ``None`` for each the input lacks."""
+    from ..io import load_points, load_sweep_columns
     from ..sweep import is_sweep_path
 
     if path.exists() and is_sweep_path(path):
@@ -92,7 +95,10 @@ def read_input(path: Path, args: argparse.Namespace, progress: Progress
     if given:
         raise InputError(f"{path}: {', '.join(given)} {'apply' if len(given) > 1 else 'applies'} to "
                          f"tracked sweeps, not to a point cloud file")
-    return load_points(path) * UNITS_MM[args.units], None, None, None
+    points = load_points(path)
+    probe, frames = load_sweep_columns(path, len(points))
+    scale = UNITS_MM[args.units]
+    return points * scale, None if probe is None else probe * scale, frames, None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -124,6 +130,8 @@ def run(args: argparse.Namespace) -> int:
     rec.input.update(path=str(args.input.resolve()), sha256=sha256_file(args.input), units=args.units)
     if sweep_info is not None:
         rec.input["sweep"] = sweep_info
+    elif probe is not None:  # a cloud file that carries its sweep's columns
+        rec.input["sweep_columns"] = ["probe"] + ([] if frames is None else ["frame"])
     sidecar = rec.save(output)
     if checkpoint is not None:
         checkpoint.path.unlink(missing_ok=True)  # the run is complete: nothing left to resume

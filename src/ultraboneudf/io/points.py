@@ -264,6 +264,39 @@ def load_points(path: str | os.PathLike, min_points: int = MIN_POINTS) -> np.nda
     return validate_points(points, source=str(path), min_points=min_points)
 
 
+def load_sweep_columns(path: str | os.PathLike, n_points: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The probe positions ``(N, 3)`` (the file's unit) and frame indices ``(N,)`` that a point file
+    written by ``sweep2points`` carries beside its points: PLY vertex properties ``probe_x``,
+    ``probe_y``, ``probe_z`` and ``frame``; NPZ arrays ``probe_position`` and ``frame_index``. Each is
+    ``None`` where the file has none, the frames also where it has no probe positions (other
+    formats: both ``None``). ``n_points``: the rows :func:`load_points` read from the same file."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    columns: dict[str, np.ndarray] = {}
+    if suffix == ".ply":
+        try:
+            raw = trimesh.load(path, process=False).metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
+        except Exception as exc:  # load_points has read it: only a file changed in between gets here
+            raise InputError(f"{path}: cannot read PLY ({type(exc).__name__}: {exc})") from None
+        names = () if raw is None or raw.dtype.names is None else raw.dtype.names
+        if {"probe_x", "probe_y", "probe_z"} <= set(names):
+            columns["probe"] = np.column_stack([raw[k].reshape(-1) for k in ("probe_x", "probe_y", "probe_z")])
+        if "frame" in names:
+            columns["frame"] = raw["frame"].reshape(-1)
+    elif suffix == ".npz":
+        with np.load(path, allow_pickle=False) as data:
+            for key, name in (("probe", "probe_position"), ("frame", "frame_index")):
+                if name in data.files:
+                    columns[key] = data[name]
+    if "probe" not in columns:
+        return None, None
+    probe = np.asarray(columns["probe"], dtype=np.float64)
+    if probe.shape != (n_points, 3):
+        raise InputError(f"{path}: the probe positions must be one row of three per point ({n_points}), "
+                         f"got shape {probe.shape}")
+    return probe, columns.get("frame")
+
+
 # --------------------------------------------------------------------------------------------
 # the writer of compounded sweep points
 
