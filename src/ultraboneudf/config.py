@@ -152,7 +152,8 @@ class DataConfig(_Section):
     consecutive frames, across their image planes (a run of lost frames), counts as surface up to
     this × ``surface_fit_mm``; gaps inside a frame, or past a frame in between, where the probe
     looked and found no echo, keep ``bridge``. For the ``surface`` distance target and the support
-    trim alike; 0 = as ``bridge``."""
+    trim alike; and the target's ``rim_reach`` stops at the sweep's first and last image planes, past
+    which the probe never looked. 0 = as ``bridge``, and no end planes."""
     rim_reach: float = 0.0
     """``surface`` distance target: past the last points (the rim of the data) the surface goes on
     for this × the local plane radius in each point's plane. Where an echo fades (oblique bone) the
@@ -561,8 +562,9 @@ def _robust() -> Config:
     warm start and the far-field term regress ``u`` on the distance to the surface interpolated
     between the points across gaps up to the plane's radius (across a sweep's frames, when they are
     known, up to 10 mm: a run of lost frames), instead of the distance to the nearest point, which
-    between slices lies beside the query rather than under it; past the data's rims
-    that surface goes on for half the plane radius (2 mm), where an oblique echo faded, also past
+    between slices lies beside the query rather than under it; past the data's rims that surface
+    goes on for half the plane radius (2 mm), where an oblique echo faded (not past a sweep's first
+    and last image planes, past which the probe never looked), also past
     the few echoes of a steep face (planes 60–80° from the beam orient the surface there without
     moving the points). The support trim measures to the bridged surface, so bridged gaps stay
     closed, and also drops the faces 1 mm or more from it along its normal (sheets the noise band

@@ -29,7 +29,7 @@ from .errors import FitWarning, InputError
 from .evaluation.data_fit import data_fit
 from .extraction import extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
-from .geometry.frames import frame_axes
+from .geometry.frames import frame_axes, sweep_ends
 from .geometry.normalize import Normalizer
 from .geometry.support import DataSurface
 from .geometry.surface_fit import LocalPlanes, fit_local_planes, shadowed
@@ -326,7 +326,8 @@ def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: in
     attrs = probe
     if probe is not None and frames is not None and d.frame_bridge > 0:
         order = np.unique(frames, return_inverse=True)[1].reshape(-1, 1)
-        attrs = np.concatenate([probe, frame_axes(points, probe, frames), order], axis=1)
+        axes = frame_axes(points, probe, frames)
+        attrs = np.concatenate([probe, axes, order, sweep_ends(points, frames, axes)], axis=1)
     voxel = d.voxel_size_mm
     voxelised, voxel_attrs = _voxel_mean(points, attrs, voxel)
     while d.max_voxels and len(voxelised) > d.max_voxels and voxel > 0:
@@ -337,11 +338,15 @@ def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: in
     planes, outliers = None, 0
     if d.surface_fit_mm > 0:
         voxelised, voxel_attrs, planes, outliers = _local_plane_stage(voxelised, voxel_attrs, d, source)
-        if voxel_attrs is not None and voxel_attrs.shape[1] == 7:
-            axis = voxel_attrs[:, 3:6]  # averaged unit vectors, made unit again (zero stays zero)
+        if voxel_attrs is not None and voxel_attrs.shape[1] == 10:
+            # averaged unit vectors, made unit again (zero stays zero); a voxel shared by two frames
+            # (rare at 0.1 mm) takes one of them, and is an end frame's only if mostly of its points
+            axis, end = voxel_attrs[:, 3:6], voxel_attrs[:, 7:10]
             axis = axis / np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
-            # a voxel shared by two frames (rare at 0.1 mm) takes one of them
-            planes = dataclasses.replace(planes, frame_axis=axis, frame_order=np.rint(voxel_attrs[:, 6]))
+            length = np.linalg.norm(end, axis=1, keepdims=True)
+            end = np.where(length > 0.5, end / np.maximum(length, 1e-12), 0.0)
+            planes = dataclasses.replace(planes, frame_axis=axis, frame_order=np.rint(voxel_attrs[:, 6]),
+                                         frame_end=end)
     elif d.denoise or d.outlier_sigmas > 0 or d.shadow_mm > 0:
         raise InputError("data.denoise, data.outlier_sigmas and data.shadow_mm need the local planes: "
                          "set data.surface_fit_mm > 0")

@@ -110,3 +110,27 @@ def test_data_surface_from_planes_takes_the_frame_axes_the_planes_carry():
     assert DataSurface.from_planes(pts, planes.subset(np.arange(len(pts))), 1.0,
                                    frame_bridge=2.5).distance(q)[0] == pytest.approx(0.3)
     assert DataSurface.from_planes(pts, planes, 1.0, frame_bridge=0.0).distance(q)[0] > 0.9
+
+
+def test_the_rim_reach_stops_at_the_sweeps_first_and_last_image_planes():
+    from ultraboneudf.geometry.frames import sweep_ends
+
+    xs = np.arange(0.0, 9.01, 1.5)                                      # frames 0..6 along +x
+    pts, origins, frames = flat_sweep(xs)
+    axes = frame_axes(pts, origins, frames)
+    ends = sweep_ends(pts, frames, axes)
+    np.testing.assert_allclose(ends[frames == 0], np.tile([-1.0, 0.0, 0.0], ((frames == 0).sum(), 1)))
+    np.testing.assert_allclose(ends[frames == 6], np.tile([1.0, 0.0, 0.0], ((frames == 6).sum(), 1)))
+    assert not ends[(frames > 0) & (frames < 6)].any()
+    assert not sweep_ends(pts[frames == 3], frames[frames == 3], axes[frames == 3]).any()  # one frame
+    up = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    bridge = np.full(len(pts), 4.0)
+    q = np.array([[-1.0, 0.0, 0.3],     # 1 mm past the first frame, out of the sweep
+                  [10.0, 0.0, 0.3],     # 1 mm past the last one
+                  [4.5, 11.0, 0.3],     # 1 mm past the bone's lateral rim, inside the sweep
+                  [-1.0, 11.0, 0.3]])   # past both: the lateral part is reached, the outward not
+    cut = DataSurface(pts, up, bridge, reach=2.0, frame_end=ends)
+    np.testing.assert_allclose(cut.distance(q), [np.hypot(1.0, 0.3), np.hypot(1.0, 0.3), 0.3,
+                                                 np.hypot(1.0, 0.3)], atol=1e-9)
+    free = DataSurface(pts, up, bridge, reach=2.0)                      # without the sweep's ends
+    np.testing.assert_allclose(free.distance(q), 0.3, atol=1e-9)

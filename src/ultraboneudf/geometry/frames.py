@@ -41,3 +41,25 @@ def frame_axes(points: np.ndarray, origins: np.ndarray, frame_index: np.ndarray)
     ref = normals[int(np.argmax(np.where(np.any(normals != 0.0, axis=1), counts, -1)))]
     normals[normals @ ref < 0] *= -1.0
     return normals[inverse]
+
+
+def sweep_ends(points: np.ndarray, frame_index: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """(N, 3) for each of ``points`` (N, 3) in the sweep's first or last frame (by ``frame_index``),
+    the unit direction out of the sweep across that frame's image plane: ``axes`` (N, 3, from
+    :func:`frame_axes`) turned away from the next frame's (or the previous frame's) points; zero rows
+    for the other frames, and for all when there is one frame or no axis. Past these planes the probe
+    never looked."""
+    points = np.asarray(points, dtype=np.float64)
+    frames = np.asarray(frame_index).reshape(-1)
+    out = np.zeros((len(points), 3))
+    present = np.unique(frames)
+    if len(present) < 2:
+        return out
+    for end, neighbour in ((present[0], present[1]), (present[-1], present[-2])):
+        rows = frames == end
+        axis = axes[rows].mean(axis=0)
+        if not np.any(axis):
+            continue
+        toward = points[frames == neighbour].mean(axis=0) - points[rows].mean(axis=0)
+        out[rows] = -np.sign(toward @ axis) * axis / np.linalg.norm(axis)
+    return out

@@ -26,6 +26,8 @@ plane) and ``frame_order`` (its frame's place in the sweep), a gap whose chord �
 point to the opposite one — joins two consecutive frames and runs across their image planes
 (within 45° of that normal) closes when that chord is at most ``frame_bridge`` long. Gaps inside a
 frame keep ``bridge``, and so do gaps that frames in between looked into and found no bone in.
+Past the sweep's first and last image planes (``frame_end``: the direction out of the sweep there)
+the probe never looked: the rim reach stops at those planes.
 
 :meth:`DataSurface.distances` also gives the part of that distance along the surface's normal: over
 a gap the same distance, elsewhere the height above the nearest point's plane (0 where it has no
@@ -58,11 +60,13 @@ class DataSurface:
     arbitrary), bridging gaps up to ``bridge`` (N,) long (0: none) and reaching ``reach`` (N,) or a
     scalar past the rims; lengths in the points' unit. ``frame_axis`` (N, 3; zero rows: unknown),
     ``frame_order`` (N,) and ``frame_bridge``: gaps between consecutive frames of a sweep close up to
-    that length (module docstring)."""
+    that length; ``frame_end`` (N, 3; zero rows: not in an end frame): no reach out of the sweep
+    (module docstring)."""
 
     def __init__(self, points: np.ndarray, normals: np.ndarray, bridge: np.ndarray,
                  reach: np.ndarray | float = 0.0, k: int = 8, frame_axis: np.ndarray | None = None,
-                 frame_order: np.ndarray | None = None, frame_bridge: float = 0.0) -> None:
+                 frame_order: np.ndarray | None = None, frame_bridge: float = 0.0,
+                 frame_end: np.ndarray | None = None) -> None:
         self.points = np.asarray(points, dtype=np.float64)
         self.normals = np.asarray(normals, dtype=np.float64)
         planar = np.any(self.normals != 0.0, axis=1)
@@ -75,6 +79,7 @@ class DataSurface:
             # a frame gap never closes shorter than an ordinary one
             self.frame_bridge = np.where(np.any(self.frame_axis != 0.0, axis=1),
                                          np.maximum(self.bridge, frame_bridge), self.bridge)
+        self.frame_end = None if frame_end is None else np.asarray(frame_end, dtype=np.float64)
         self.k = int(min(k, len(self.points)))
         self.tree = kd_tree(self.points)
 
@@ -84,9 +89,11 @@ class DataSurface:
         """The surface through ``points`` (N, 3) with their local ``planes``: gaps bridged up to
         ``bridge`` × each point's gap scale (``planes.gap``), rims reached ``reach`` × it, and, where
         the planes know the sweep's frames (``planes.frame_axis``, ``planes.frame_order``), gaps
-        between consecutive frames bridged up to ``frame_bridge`` × the planes' first radius."""
+        between consecutive frames bridged up to ``frame_bridge`` × the planes' first radius and no
+        reach past the sweep's end planes (``planes.frame_end``)."""
         return cls(points, planes.normal, bridge * planes.gap, reach * planes.gap, frame_axis=planes.frame_axis,
-                   frame_order=planes.frame_order, frame_bridge=frame_bridge * planes.base)
+                   frame_order=planes.frame_order, frame_bridge=frame_bridge * planes.base,
+                   frame_end=planes.frame_end)
 
     def distance(self, x: np.ndarray, chunk: int = 65_536) -> np.ndarray:
         """(M,) distance from each row of ``x`` (M, 3) to the surface (see the module docstring)."""
@@ -148,5 +155,14 @@ class DataSurface:
         tilt = np.degrees(np.arccos(np.clip(np.einsum("mi,mi->m", n, n_j), -1.0, 1.0)))
         w = np.clip((tilt - _PLANES_AGREE_DEG) / _PLANES_AGREE_DEG, 0.0, 1.0)
         between = np.abs((1.0 - w) * planes_side + w * chord_side)
+        # past the rim: to the disc of radius reach in the nearest point's plane, cut off at the
+        # sweep's end plane (the part of x's in-plane offset out of the sweep is not reached)
         beyond = np.sqrt(a0 ** 2 + np.maximum(b0 - self.reach[first], 0.0) ** 2)
+        if self.frame_end is not None:
+            out = self.frame_end[first]
+            out = _unit(out - np.einsum("mi,mi->m", out, n)[:, None] * n)
+            past = np.maximum(-np.einsum("mi,mi->m", inplane[:, 0], out), 0.0)
+            side = np.sqrt(np.maximum(b0 ** 2 - past ** 2, 0.0))
+            cut = np.sqrt(a0 ** 2 + past ** 2 + np.maximum(side - self.reach[first], 0.0) ** 2)
+            beyond = np.where(past > 0.0, cut, beyond)
         return np.where(has, between, beyond), np.where(has, between, np.abs(a0))

@@ -34,10 +34,11 @@ From the fit:
 * ``radius``: the radius of the accepted fit (the scale at which the data form a surface there:
   about the gap between neighbouring slices where they are sparse), 0 where none;
 * ``steep``: the fit is a steep plane (above), not one facing the view;
-* ``frame_axis``, ``frame_order``: for a sweep whose frames are known, the normal of the image
-  plane that imaged each point (:func:`~ultraboneudf.geometry.frames.frame_axes`) and that frame's
-  place among the sweep's frames (0, 1, …); the pipeline adds them, the fit does not need them;
-  else ``None``.
+* ``frame_axis``, ``frame_order``, ``frame_end``: for a sweep whose frames are known, the normal
+  of the image plane that imaged each point (:func:`~ultraboneudf.geometry.frames.frame_axes`),
+  that frame's place among the sweep's frames (0, 1, …) and, in the first and last frame, the
+  direction out of the sweep (:func:`~ultraboneudf.geometry.frames.sweep_ends`); the pipeline adds
+  them, the fit does not need them; else ``None``.
 
 Neighbours come from a copy of the cloud voxelised at ``radius / 4``, so that ``max_neighbors``
 points cover the whole radius whatever the input density (a dense slice would otherwise fill the
@@ -78,6 +79,7 @@ class LocalPlanes:
     base: float = 0.0     # the first radius tried
     frame_axis: np.ndarray | None = None   # (N, 3) sweeps: the image plane's normal (geometry.frames)
     frame_order: np.ndarray | None = None  # (N,) sweeps: the frame's place among the sweep's frames
+    frame_end: np.ndarray | None = None    # (N, 3) sweeps: out of the sweep, in its first/last frame
 
     @property
     def valid(self) -> np.ndarray:
@@ -110,13 +112,14 @@ class LocalPlanes:
         return LocalPlanes(self.normal[keep], self.offset[keep], self.spread[keep], self.count[keep],
                            self.radius[keep], self.steep[keep], self.base,
                            None if self.frame_axis is None else self.frame_axis[keep],
-                           None if self.frame_order is None else self.frame_order[keep])
+                           None if self.frame_order is None else self.frame_order[keep],
+                           None if self.frame_end is None else self.frame_end[keep])
 
     def scaled(self, factor: float) -> "LocalPlanes":
         """The same planes with every length multiplied by ``factor`` (a change of unit)."""
         return LocalPlanes(self.normal, self.offset * factor, self.spread * factor, self.count,
                            self.radius * factor, self.steep, self.base * factor, self.frame_axis,
-                           self.frame_order)
+                           self.frame_order, self.frame_end)
 
 
 def fit_local_planes(points: np.ndarray, radius: float, view: np.ndarray | None = None,
