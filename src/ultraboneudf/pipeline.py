@@ -187,7 +187,8 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
         ``poisson.orientation``); ignored by the others.
     frame_index : optional (N,) integers, with ``probe_positions``: the frame (image) that imaged
         each point (``CompoundedPoints.frame_index``). The surface through the data then bridges the
-        gaps between frames further than those inside one (``data.frame_bridge``).
+        gaps between consecutive frames further than those inside one, and does not reach past the
+        sweep's first and last image planes (``data.frame_bridge``).
     checkpoint : save the training's state every ``checkpoint.every`` steps to ``checkpoint.path``
         and, with ``checkpoint.resume``, continue a killed run from it (same result as an
         uninterrupted run); for the methods that train with the shared loop (not FUNSR or Poisson).
