@@ -325,7 +325,8 @@ def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: in
     # the probe position, the image plane's normal and the frame's place in the sweep ride along
     # with each point as attributes
     attrs = probe
-    if probe is not None and frames is not None and d.frame_bridge > 0:
+    with_frames = probe is not None and frames is not None and d.frame_bridge > 0
+    if with_frames:
         order = np.unique(frames, return_inverse=True)[1].reshape(-1, 1)
         axes = frame_axes(points, probe, frames)
         attrs = np.concatenate([probe, axes, order, sweep_ends(points, frames, axes)], axis=1)
@@ -339,7 +340,7 @@ def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: in
     planes, outliers = None, 0
     if d.surface_fit_mm > 0:
         voxelised, voxel_attrs, planes, outliers = _local_plane_stage(voxelised, voxel_attrs, d, source)
-        if voxel_attrs is not None and voxel_attrs.shape[1] == 10:
+        if with_frames:
             # averaged unit vectors, made unit again (zero stays zero); a voxel shared by two frames
             # (rare at 0.1 mm) takes one of them, and is an end frame's only if mostly of its points
             axis, end = voxel_attrs[:, 3:6], voxel_attrs[:, 7:10]
