@@ -14,6 +14,9 @@ Inputs (mm), per bone of ``../shared/data/bones`` (or ``ULTRABONEUDF_BONES``):
 
 Metrics against the truth, over ``--samples`` area samples of each mesh: CD = ½(mean A→B + mean
 B→A), HD95 = max of the two directed 95th percentiles (mm); ``area`` = mesh area / truth area;
+``off_bone`` = the area of the mesh more than 1 mm from the whole bone model over the truth's area
+(surface that is not bone: ``area`` less ``off_bone`` is mesh on the bone, which may lie outside the
+visible truth where the probe saw no echo, e.g. a steep wall inside a bridged gap);
 ``loops`` = boundary loops; ``nm`` = edges shared by more than two faces; ``far`` = the sidecar's
 ``data_fit.input_far_fraction`` (input points > 3 mm from the mesh); ``time_s`` = end to end.
 ``cd_pgt_mm`` and ``hd95_pgt_mm``: the same against the paper's pseudo ground truth, the truth's
@@ -56,6 +59,8 @@ from bench_reconstruct import BONES  # noqa: E402
 
 METHODS = "ultraboneudf,poisson,capudf,funsr,carotidudf,vanilla_udf,ultraboneudf_pull"
 SWEEP_LEVELS = {"clean": "none", "moderate": "moderate", "hard": "hard"}
+OFF_BONE_MM = 1.0
+BONE_SAMPLES = 2_000_000  # 0.16 mm apart on the largest bone's 50,000 mm²: far below OFF_BONE_MM
 LEVELS = "clean,moderate,hard,open,e6-0.5,e6-1.0,e6-1.5,e6-2.0"
 
 
@@ -144,8 +149,28 @@ def parse_sim(items: list[str]) -> dict:
     return sim
 
 
-def run_one(method: str, points, probe, truth, args: argparse.Namespace, frames=None) -> tuple[dict, object]:
-    """One reconstruction and its scores; returns the row and the mesh (``None`` on failure)."""
+def bone_tree(bone: str):
+    """A KD-tree of dense area samples of the whole bone model (mm), for :func:`off_bone_area`."""
+    from ultraboneudf import load_mesh
+    from ultraboneudf.evaluation.sampling import sample_surface
+    from ultraboneudf.geometry.neighbors import kd_tree
+
+    return kd_tree(sample_surface(load_mesh(BONES / f"{bone}.ply"), BONE_SAMPLES, seed=0))
+
+
+def off_bone_area(mesh, truth_area: float, tree, samples: int) -> float:
+    """The area of ``mesh`` farther than ``OFF_BONE_MM`` from the bone (``tree``: :func:`bone_tree`)
+    over ``truth_area``, from ``samples`` area samples of the mesh."""
+    from ultraboneudf.evaluation.sampling import sample_surface
+
+    d = tree.query(sample_surface(mesh, samples, seed=0), k=1, workers=-1)[0]
+    return float(mesh.area * np.mean(d > OFF_BONE_MM) / truth_area)
+
+
+def run_one(method: str, points, probe, truth, args: argparse.Namespace, frames=None,
+            bone=None) -> tuple[dict, object]:
+    """One reconstruction and its scores (``bone``: :func:`bone_tree` of the bone, for
+    ``off_bone``); returns the row and the mesh (``None`` on failure)."""
     import ultraboneudf
     from ultraboneudf.errors import InputError
     from ultraboneudf.evaluation import evaluate
@@ -169,14 +194,16 @@ def run_one(method: str, points, probe, truth, args: argparse.Namespace, frames=
     row.update(cd_mm=round(res.cd_mm, 3), hd95_mm=round(res.hd95_mm, 2),
                cd_pgt_mm=round(pgt.cd_mm, 3), hd95_pgt_mm=round(pgt.hd95_mm, 2),
                d_rg_mm=round(res.d_rg_mean_mm, 3), d_gr_mm=round(res.d_gr_mean_mm, 3),
-               area=round(float(rec.mesh.area / truth.area), 3), loops=q.get("boundary_loops"),
+               area=round(float(rec.mesh.area / truth.area), 3),
+               off_bone=None if bone is None else round(off_bone_area(rec.mesh, truth.area, bone, args.samples), 3),
+               loops=q.get("boundary_loops"),
                nm=q.get("nonmanifold_edges"), components=q.get("components"),
                far=round(rec.data_fit.get("input_far_fraction", float("nan")), 4),
                outliers=rec.counts.get("outliers_removed"), depth=rec.counts.get("extract_depth"))
     return row, rec.mesh
 
 
-COLUMNS = ["bone", "level", "method", "cd_mm", "hd95_mm", "cd_pgt_mm", "hd95_pgt_mm", "area", "loops", "nm",
+COLUMNS = ["bone", "level", "method", "cd_mm", "hd95_mm", "cd_pgt_mm", "hd95_pgt_mm", "area", "off_bone", "loops", "nm",
            "far", "time_s"]
 
 
@@ -243,6 +270,7 @@ def main() -> None:
     sim = parse_sim(args.sim)
     rows = []
     for bone in args.bones.split(","):
+        tree = None
         for level in args.levels.split(","):
             points, probe, truth, frames = make_input(bone, level, args.seed, args.cache, not args.no_align,
                                                       sim, args.no_fragments)
@@ -262,7 +290,8 @@ def main() -> None:
                 if old is not None:
                     rows.append(old)
                     continue
-                row, mesh = run_one(method, points, probe, truth, args, frames)
+                tree = tree if tree is not None else bone_tree(bone)
+                row, mesh = run_one(method, points, probe, truth, args, frames, tree)
                 rows.append({**key, **row})
                 print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
                 if args.json:
