@@ -168,8 +168,8 @@ def off_bone_area(mesh, truth_area: float, tree, samples: int) -> float:
 
 
 def run_one(method: str, points, probe, truth, args: argparse.Namespace, frames=None,
-            bone=None) -> tuple[dict, object]:
-    """One reconstruction and its scores (``bone``: :func:`bone_tree` of the bone, for
+            bone_kd=None) -> tuple[dict, object]:
+    """One reconstruction and its scores (``bone_kd``: :func:`bone_tree` of the bone, for
     ``off_bone``); returns the row and the mesh (``None`` on failure)."""
     import ultraboneudf
     from ultraboneudf.errors import InputError
@@ -195,7 +195,8 @@ def run_one(method: str, points, probe, truth, args: argparse.Namespace, frames=
                cd_pgt_mm=round(pgt.cd_mm, 3), hd95_pgt_mm=round(pgt.hd95_mm, 2),
                d_rg_mm=round(res.d_rg_mean_mm, 3), d_gr_mm=round(res.d_gr_mean_mm, 3),
                area=round(float(rec.mesh.area / truth.area), 3),
-               off_bone=None if bone is None else round(off_bone_area(rec.mesh, truth.area, bone, args.samples), 3),
+               off_bone=(None if bone_kd is None
+                         else round(off_bone_area(rec.mesh, truth.area, bone_kd, args.samples), 3)),
                loops=q.get("boundary_loops"),
                nm=q.get("nonmanifold_edges"), components=q.get("components"),
                far=round(rec.data_fit.get("input_far_fraction", float("nan")), 4),
