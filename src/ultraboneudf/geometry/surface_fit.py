@@ -48,7 +48,7 @@ mm, before normalisation).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -108,18 +108,15 @@ class LocalPlanes:
         return far | sparse
 
     def subset(self, keep: np.ndarray) -> "LocalPlanes":
-        """The fits of the points selected by a boolean mask or index array."""
-        return LocalPlanes(self.normal[keep], self.offset[keep], self.spread[keep], self.count[keep],
-                           self.radius[keep], self.steep[keep], self.base,
-                           None if self.frame_axis is None else self.frame_axis[keep],
-                           None if self.frame_order is None else self.frame_order[keep],
-                           None if self.frame_end is None else self.frame_end[keep])
+        """The fits of the points selected by a boolean mask or index array (every per-point array,
+        the optional sweep ones included)."""
+        return replace(self, **{f.name: getattr(self, f.name)[keep] for f in fields(self)
+                                if isinstance(getattr(self, f.name), np.ndarray)})
 
     def scaled(self, factor: float) -> "LocalPlanes":
         """The same planes with every length multiplied by ``factor`` (a change of unit)."""
-        return LocalPlanes(self.normal, self.offset * factor, self.spread * factor, self.count,
-                           self.radius * factor, self.steep, self.base * factor, self.frame_axis,
-                           self.frame_order, self.frame_end)
+        return replace(self, offset=self.offset * factor, spread=self.spread * factor,
+                       radius=self.radius * factor, base=self.base * factor)
 
 
 def fit_local_planes(points: np.ndarray, radius: float, view: np.ndarray | None = None,

@@ -17,5 +17,5 @@ from .sidecar import (FREE_SPACE_BYTES, check_outputs, legacy_sidecar, read_side
 __all__ = ["FREE_SPACE_BYTES", "MAX_COORDINATE_MM", "MAX_PLY_VERTICES", "MESH_SUFFIXES", "MIN_POINTS",
            "PLAUSIBLE_EXTENT_MM", "POINT_READERS", "POINT_SUFFIXES", "atomic_write_bytes", "check_mesh_path",
            "check_outputs", "check_units", "encode_points", "legacy_sidecar", "load_mesh", "load_points",
-           "load_sweep_columns", "read_sidecar", "save_json", "save_mesh", "save_mesh_with_sidecar", "sha256_file", "sidecar_path",
-           "sigterm_raises", "validate_points", "write_temp"]
+           "load_sweep_columns", "read_sidecar", "save_json", "save_mesh", "save_mesh_with_sidecar", "sha256_file",
+           "sidecar_path", "sigterm_raises", "validate_points", "write_temp"]
