@@ -137,8 +137,11 @@ class DataConfig(_Section):
     than 60° (which the planes refuse: false echoes streaking under the bone make such planes) but
     within this angle keeps that plane's orientation for the ``surface`` distance target and the
     support trim: the surface continues past it as past any rim (``rim_reach``), where a steep
-    face's echo faded. It is not moved onto that plane nor judged by it. 0 = such points have no
-    plane and the surface ends at them."""
+    face's echo faded. It is not moved onto that plane nor judged by it, and it is kept where it is
+    too sparse for a plane at ``surface_fit_mm`` but a wider radius gives it a steep one (a steep
+    face returns few echoes), unless another point lies 3–10 mm above it on its beam (false echoes
+    in the bone's shadow line up into steep planes too). 0 = such points have no plane and the
+    surface ends at them."""
     shadow_mm: float = 0.0
     """Sweeps (points with probe positions): drop the points that lie this many mm or more (up to
     10 mm) beneath another point along their own beam, within half a millimetre of it — false echoes
@@ -564,15 +567,16 @@ def _robust() -> Config:
     known, up to 10 mm: a run of lost frames), instead of the distance to the nearest point, which
     between slices lies beside the query rather than under it; past the data's rims that surface
     goes on for half the plane radius (2 mm), where an oblique echo faded (not past a sweep's first
-    and last image planes, past which the probe never looked), also past
-    the few echoes of a steep face (planes 60–80° from the beam orient the surface there without
-    moving the points). The support trim measures to the bridged surface, so bridged gaps stay
-    closed, and also drops the faces 1 mm or more from it along its normal (sheets the noise band
-    leaves under or over the bone). ``L_OS`` on 256 surface points a step pins the zero level to the
-    data where few frames saw the bone and the tangent phase alone leaves the field above zero
-    there. Leaves are kept ≥ 0.75 mm, so a small bone is not meshed finer than its data resolve. The
-    network is twice as wide as ``fast``'s (4 × 128): on these points it follows the denoised
-    surface more closely, for 1.6–1.8× the time (docs/robustness.md measures each part)."""
+    and last image planes, past which the probe never looked), also past the few echoes of a steep
+    face (planes 60–80° from the beam orient the surface there without moving the points, and keep
+    them where they are too sparse for a plane at 4 mm). The support trim measures to the bridged
+    surface, so bridged gaps stay closed, and also drops the faces 1 mm or more from it along its
+    normal (sheets the noise band leaves under or over the bone). ``L_OS`` on 256 surface points a
+    step pins the zero level to the data where few frames saw the bone and the tangent phase alone
+    leaves the field above zero there. Leaves are kept ≥ 0.75 mm, so a small bone is not meshed
+    finer than its data resolve. The network is twice as wide as ``fast``'s (4 × 128): on these
+    points it follows the denoised surface more closely, for 1.6–1.8× the time (docs/robustness.md
+    measures each part)."""
     cfg = _fast()
     cfg.model.hidden = (128, 128, 128, 128)
     cfg.data.max_voxels = 200_000

@@ -32,12 +32,17 @@ from .fields.base import Field
 from .geometry.frames import frame_axes, sweep_ends
 from .geometry.normalize import Normalizer
 from .geometry.support import DataSurface
-from .geometry.surface_fit import LocalPlanes, fit_local_planes, shadowed
+from .geometry.surface_fit import LocalPlanes, fit_local_planes, shadowed, steep_echoes
 from .geometry.voxel import voxel_downsample, voxel_downsample_with
 from .io import check_outputs, check_units, save_mesh_with_sidecar, validate_points
 from .methods import Fitted, get_method
 from .methods import ultraboneudf as ubu
 from .progress import Progress
+
+# A steep face's few echoes are kept unless another point lies this far (to 10 mm) above them on
+# their beam: a neighbouring scan line meets a face 80° from the beam up to about 3 mm higher
+# within the shadow test's half millimetre of it (geometry.surface_fit.steep_echoes).
+_STEEP_ECHO_SHADOW_MM = 3.0
 
 
 @dataclass
@@ -385,7 +390,8 @@ def _local_plane_stage(points: np.ndarray, attrs: np.ndarray | None, d: DataConf
             view = points - attrs[:, :3]
             view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
         planes = fit_local_planes(points, d.surface_fit_mm, view=view, steep_deg=d.steep_planes_deg)
-        keep = (~planes.outliers(d.outlier_sigmas, 0.1 * d.surface_fit_mm) if d.outlier_sigmas > 0
+        spare = None if view is None else steep_echoes(points, view, planes, _STEEP_ECHO_SHADOW_MM)
+        keep = (~planes.outliers(d.outlier_sigmas, 0.1 * d.surface_fit_mm, spare) if d.outlier_sigmas > 0
                 else np.ones(len(points), dtype=bool))
         if not keep.any():
             raise InputError(f"{source}: no point has enough neighbours within data.surface_fit_mm = "

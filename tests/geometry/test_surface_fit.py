@@ -111,6 +111,57 @@ def test_a_steep_face_gets_an_orientation_but_is_neither_moved_nor_judged(angle)
     assert facing.valid[inner].all() and not facing.steep.any()
 
 
+def test_the_few_echoes_of_a_steep_face_are_spared_and_a_deep_scatter_is_not():
+    """A face 70° from the beam with an echo every 3.8 mm (five points within 4 mm, a surface needs
+    six: sparse) beside a dense surface facing the probe, with echoes scattered 5–10 mm under it:
+    the 8 mm radius gives the face a steep plane, so its echoes are spared; the scatter still goes."""
+    from ultraboneudf.geometry.surface_fit import steep_echoes
+
+    dense = noisy_plane(n=40_000, noise=0.3)
+    rng = np.random.default_rng(2)
+    deep = np.c_[rng.uniform(-20, 20, (100, 2)), -rng.uniform(5.0, 10.0, 100)]
+    a = np.radians(70.0)
+    u, v = np.meshgrid(np.arange(-15.2, 15.3, 3.8), np.arange(-15.2, 15.3, 3.8))
+    face = np.c_[u.ravel() * np.cos(a), v.ravel(), u.ravel() * np.sin(a)] + [60.0, 0.0, 0.0]
+    face += rng.normal(0.0, 0.1, face.shape)
+    cloud = np.r_[dense, deep, face]
+    down = np.tile([0.0, 0.0, -1.0], (len(cloud), 1))
+    on_face = np.arange(len(cloud)) >= len(dense) + len(deep)
+    inner = on_face & (np.abs(cloud[:, 1]) < 10.0) & (np.abs(cloud[:, 0] - 60.0) < 4.0)
+    pl = fit_local_planes(cloud, 4.0, view=down, steep_deg=80.0)
+    assert pl.sparse[on_face].all() and pl.steep[inner].all() and np.all(pl.radius[inner] == 8.0)
+    spare = steep_echoes(cloud, down, pl, 3.0)
+    assert spare[inner].all() and not spare[:len(dense) + len(deep)].any()
+    out = pl.outliers(3.0, 0.4, spare)
+    assert not out[inner].any()
+    assert out[len(dense):len(dense) + len(deep)].mean() > 0.9 and out[:len(dense)].mean() < 0.01
+    # not spared, the face is a sparse scatter like the other
+    assert pl.outliers(3.0, 0.4)[on_face].all()
+
+
+def test_false_echoes_that_line_up_into_steep_planes_under_a_bone_are_not_spared():
+    """Slices every 1.5 mm over a cylinder of radius 20 mm seen from above, 0.8 mm noise, 3% false
+    echoes up to 10 mm under it: a few of the deep ones line up with each other into planes
+    60–80° from the beam at 8 or 16 mm, but the bone lies above them on their beam."""
+    from ultraboneudf.geometry.surface_fit import steep_echoes
+
+    rng = np.random.default_rng(0)
+    pts = []
+    for y in np.arange(0.75, 40.0, 1.5):
+        x = np.arange(-14.1, 14.1, 0.15)
+        z = np.sqrt(400.0 - x * x) + rng.normal(0.0, 0.8, len(x))
+        echo = rng.random(len(x)) < 0.03
+        z[echo] -= rng.uniform(0.0, 10.0, echo.sum())
+        pts.append(np.c_[x, np.full_like(x, y), z])
+    pts = np.concatenate(pts)
+    down = np.tile([0.0, 0.0, -1.0], (len(pts), 1))
+    pl = fit_local_planes(pts, 4.0, view=down, steep_deg=80.0)
+    deep = np.hypot(pts[:, 0], pts[:, 2]) < 17.0
+    lone = pl.sparse & pl.steep & (pl.radius > pl.base)
+    assert (lone & deep).sum() >= 3
+    assert not (steep_echoes(pts, down, pl, 3.0) & deep).any()
+
+
 def test_data_surface_bridges_gaps_between_slices_but_not_past_the_rim():
     pts = slices(spacing=5.0, step=0.2, half=10.0)           # lines y = −10, −5, 0, 5, 10
     up = np.tile([0.0, 0.0, 1.0], (len(pts), 1))

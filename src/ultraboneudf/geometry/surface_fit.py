@@ -20,7 +20,10 @@ With ``steep_deg`` (> 60°), a point that no radius gives a plane within 60° of
 some radius gives one within ``steep_deg``, keeps that *steep* plane's orientation and radius, so
 that the surface through the data continues past it in that plane (an echo fading on a steep face:
 the bone goes on past the last detection), without being moved onto it or judged by it
-(``offset`` 0, not ``valid``).
+(``offset`` 0, not ``valid``). A steep face returns few echoes, often too few for a plane at the
+first radius: :func:`steep_echoes` finds those that a wider radius gives a steep plane, unless the
+bone lies above them on their beam (false echoes in its shadow can line up into such planes too),
+and :meth:`LocalPlanes.outliers` spares them.
 
 From the fit:
 
@@ -98,14 +101,19 @@ class LocalPlanes:
         """``points`` (N, 3) moved onto their planes (unchanged where there is none)."""
         return points - self.offset[:, None] * self.normal
 
-    def outliers(self, sigmas: float, floor: float = 0.0) -> np.ndarray:
-        """(N,) bool: points farther from their plane than ``sigmas`` × its spread (and than
-        ``floor``), or isolated: fewer neighbours within the first radius than a surface needs, or
-        than a tenth of the cloud's median count (false echoes deeper than the radius find only
+    @property
+    def sparse(self) -> np.ndarray:
+        """(N,) bool: isolated points: fewer neighbours within the first radius than a surface needs,
+        or than a tenth of the cloud's median count (false echoes deeper than the radius find only
         each other, a sparse scatter)."""
+        return self.count < max(_MIN_NEIGHBORS, _SPARSE * float(np.median(self.count)) if len(self.count) else 0.0)
+
+    def outliers(self, sigmas: float, floor: float = 0.0, spare: np.ndarray | None = None) -> np.ndarray:
+        """(N,) bool: points farther from their plane than ``sigmas`` × its spread (and than
+        ``floor``), or :attr:`sparse`, except those ``spare`` (N,) bool marks (e.g.
+        :func:`steep_echoes`)."""
         far = self.valid & (np.abs(self.offset) > np.maximum(sigmas * self.spread, floor))
-        sparse = self.count < max(_MIN_NEIGHBORS, _SPARSE * float(np.median(self.count)) if len(self.count) else 0.0)
-        return far | sparse
+        return far | (self.sparse if spare is None else self.sparse & ~spare)
 
     def subset(self, keep: np.ndarray) -> "LocalPlanes":
         """The fits of the points selected by a boolean mask or index array (every per-point array,
@@ -265,6 +273,22 @@ def _quadric_height(d: np.ndarray, weight: np.ndarray, vecs: np.ndarray, own: np
     ridge = np.where(np.arange(6) < 3, 1e-3, 1e-9) * np.maximum(diag.max(axis=1, keepdims=True), 1e-300)
     coef = np.linalg.solve(ata + ridge[:, :, None] * np.eye(6), atb[..., None])[..., 0]
     return np.einsum("ci,ci->c", design(own, vecs[:, :, 2], vecs[:, :, 1]), coef)
+
+
+def steep_echoes(points: np.ndarray, view: np.ndarray, planes: LocalPlanes, margin: float) -> np.ndarray:
+    """(N,) bool: the few echoes of a steep face among ``points`` (N, 3): :attr:`~LocalPlanes.sparse`
+    at the first radius of their ``planes``, given a steep plane by a wider one, and not
+    :func:`shadowed` (another point ``margin`` to 10 mm above them along their beam, ``view`` (N, 3);
+    ``margin`` must exceed the height by which a neighbouring scan line meets the same steep face).
+    A face 60–80° from the beam returns few echoes, and those few are all the sweep says of it; a
+    false echo in the bone's shadow can line up with others into a steep plane too, but the bone
+    lies above it on its beam."""
+    out = planes.sparse & planes.steep & (planes.radius > planes.base)
+    rows = np.flatnonzero(out)
+    if len(rows):
+        occluders = np.asarray(points, dtype=np.float64)[~planes.sparse]
+        out[rows[shadowed(points[rows], view[rows], margin, occluders=occluders)]] = False
+    return out
 
 
 def shadowed(points: np.ndarray, view: np.ndarray, margin: float, depth: float = 10.0,
