@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ultraboneudf.geometry.support import DataSurface
-from ultraboneudf.geometry.surface_fit import fit_local_planes
+from ultraboneudf.geometry.surface_fit import fit_local_planes, steep_echoes
 
 
 def noisy_plane(n=20_000, noise=0.5, seed=0, half=30.0):
@@ -115,8 +115,6 @@ def test_the_few_echoes_of_a_steep_face_are_spared_and_a_deep_scatter_is_not():
     """A face 70° from the beam with an echo every 3.8 mm (five points within 4 mm, a surface needs
     six: sparse) beside a dense surface facing the probe, with echoes scattered 5–10 mm under it:
     the 8 mm radius gives the face a steep plane, so its echoes are spared; the scatter still goes."""
-    from ultraboneudf.geometry.surface_fit import steep_echoes
-
     dense = noisy_plane(n=40_000, noise=0.3)
     rng = np.random.default_rng(2)
     deep = np.c_[rng.uniform(-20, 20, (100, 2)), -rng.uniform(5.0, 10.0, 100)]
@@ -143,8 +141,6 @@ def test_false_echoes_that_line_up_into_steep_planes_under_a_bone_are_not_spared
     """Slices every 1.5 mm over a cylinder of radius 20 mm seen from above, 0.8 mm noise, 3% false
     echoes up to 10 mm under it: a few of the deep ones line up with each other into planes
     60–80° from the beam at 8 or 16 mm, but the bone lies above them on their beam."""
-    from ultraboneudf.geometry.surface_fit import steep_echoes
-
     rng = np.random.default_rng(0)
     pts = []
     for y in np.arange(0.75, 40.0, 1.5):
