@@ -390,9 +390,10 @@ def _local_plane_stage(points: np.ndarray, attrs: np.ndarray | None, d: DataConf
             view = points - attrs[:, :3]
             view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
         planes = fit_local_planes(points, d.surface_fit_mm, view=view, steep_deg=d.steep_planes_deg)
-        spare = None if view is None else steep_echoes(points, view, planes, _STEEP_ECHO_SHADOW_MM)
-        keep = (~planes.outliers(d.outlier_sigmas, 0.1 * d.surface_fit_mm, spare) if d.outlier_sigmas > 0
-                else np.ones(len(points), dtype=bool))
+        keep = np.ones(len(points), dtype=bool)
+        if d.outlier_sigmas > 0:
+            spare = None if view is None else steep_echoes(points, view, planes, _STEEP_ECHO_SHADOW_MM)
+            keep = ~planes.outliers(d.outlier_sigmas, 0.1 * d.surface_fit_mm, spare)
         if not keep.any():
             raise InputError(f"{source}: no point has enough neighbours within data.surface_fit_mm = "
                              f"{d.surface_fit_mm:g} mm to form a surface (is the cloud in mm?)")

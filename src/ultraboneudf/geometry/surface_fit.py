@@ -283,10 +283,11 @@ def steep_echoes(points: np.ndarray, view: np.ndarray, planes: LocalPlanes, marg
     A face 60–80° from the beam returns few echoes, and those few are all the sweep says of it; a
     false echo in the bone's shadow can line up with others into a steep plane too, but the bone
     lies above it on its beam."""
-    out = planes.sparse & planes.steep & (planes.radius > planes.base)
+    sparse = planes.sparse
+    out = sparse & planes.steep & (planes.radius > planes.base)
     rows = np.flatnonzero(out)
     if len(rows):
-        occluders = np.asarray(points, dtype=np.float64)[~planes.sparse]
+        occluders = np.asarray(points, dtype=np.float64)[~sparse]
         out[rows[shadowed(points[rows], view[rows], margin, occluders=occluders)]] = False
     return out
 
