@@ -14,8 +14,9 @@ import pytest
 import torch
 import trimesh
 
-from ultraboneudf.config import DMU_DEFAULTS, ExtractConfig, preset
+from ultraboneudf.config import DMU_DEFAULTS, CleanConfig, ExtractConfig, preset
 from ultraboneudf.extraction import extract_mesh, mesh_quality
+from ultraboneudf.extraction.dualmesh.edge_crossing import unfold
 from ultraboneudf.fields import DiscUDF, Field, PlaneUDF, SphereUDF, TorusUDF
 from ultraboneudf.fields.analytic import sphere_area, torus_area
 
@@ -126,6 +127,77 @@ def test_presets_use_clean_mode():
     assert preset("paper").extract.mode == "clean"
     assert preset("fast").extract.mode == "clean"
     assert preset("official").extract.mode == "faithful"
+
+
+# ------------------------------------------------------------------------------------ fold repair
+
+def _grid_on_plane(n: int, h: float, z: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """An n × n grid of vertices h apart on the plane z, two consistently wound triangles a square."""
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    pos = np.stack([i.ravel() * h, j.ravel() * h, np.full(n * n, z)], 1)
+    v = (i[:-1, :-1] * n + j[:-1, :-1]).ravel()
+    faces = np.concatenate([np.stack([v, v + n, v + n + 1], 1), np.stack([v, v + n + 1, v + 1], 1)])
+    return torch.as_tensor(pos, dtype=torch.float64), torch.as_tensor(faces)
+
+
+def test_unfold_flattens_a_spike_and_keeps_the_rim():
+    field, h = PlaneUDF(offset=0.1), 0.05
+    flat, faces = _grid_on_plane(7, h, 0.1)
+    spiked = flat.clone()
+    spiked[3 * 7 + 3, 2] += 0.2                     # an inner vertex: its faces meet the plane at 76°
+    spiked[0 * 7 + 3, 2] += 0.2                     # a rim vertex
+    out, moves = unfold(field, ExtractConfig(), spiked, faces, h, degrees=60.0, passes=3)
+    assert moves > 0
+    inner = torch.ones(49, dtype=torch.bool)
+    inner[0 * 7 + 3] = False
+    assert torch.allclose(out[inner], flat[inner], atol=1e-12)   # back on the plane, where they were
+    assert torch.equal(out[0 * 7 + 3], spiked[0 * 7 + 3])        # the rim stays where it was put
+    same, none = unfold(field, ExtractConfig(), spiked, faces, h, degrees=0.0, passes=3)
+    assert torch.equal(same, spiked) and none == 0
+
+
+def _folded(mesh) -> float:
+    """The fraction of neighbouring faces that meet at more than 60°."""
+    return float(np.mean(mesh.face_adjacency_angles > math.radians(60.0)))
+
+
+def test_unfold_leaves_a_sphere_alone_and_keeps_a_torus_on_its_surface():
+    sphere = SphereUDF(0.3)
+    plain = extract_mesh(sphere, clean(6))
+    repaired = extract_mesh(sphere, clean(6), clean=CleanConfig(unfold_deg=60.0))
+    assert repaired.metadata["unfold_moves"] == 0
+    assert np.array_equal(plain.vertices, repaired.vertices)
+    # On a torus three cells thick the QEF vertices leave a few faces flipped over (up to 165°).
+    torus = TorusUDF(0.4, 0.1)
+    plain = extract_mesh(torus, clean(6))
+    repaired = extract_mesh(torus, clean(6), clean=CleanConfig(unfold_deg=60.0))
+    assert repaired.metadata["unfold_moves"] > 0
+    assert _folded(plain) > 0.01 and _folded(repaired) < 0.5 * _folded(plain)
+    check_clean(repaired, torus, torus_area(0.4, 0.1), 0, 6)   # still on the surface, same area
+
+
+def test_unfold_takes_the_zigzag_out_of_a_band():
+    # A sheet rippled at the leaf's scale (1.5 cells a period, ±0.15 cell): the QEF vertices follow
+    # the ripples across neighbouring leaves and the faces fold; the repair flattens them.
+    class Rippled(Field):
+        def _value_and_grad(self, x):
+            a, k = 0.15 * 2.0 / 64, 2 * math.pi / (1.5 * 2.0 / 64)
+            x = x.detach().requires_grad_(True)
+            with torch.enable_grad():
+                u = (x[:, 2] - 0.1 - a * torch.sin(k * x[:, 0]) * torch.sin(k * x[:, 1])).abs()
+                g, = torch.autograd.grad(u.sum(), x)
+            return u.detach(), g
+
+        def _value(self, x):
+            return self._value_and_grad(x)[0]
+
+    field = Rippled()
+    plain = extract_mesh(field, clean(6))
+    repaired = extract_mesh(field, clean(6), clean=CleanConfig(unfold_deg=60.0))
+    assert _folded(plain) > 0.02
+    assert _folded(repaired) < 0.25 * _folded(plain)
+    assert repaired.area < plain.area
+    assert mesh_quality(repaired)["nonmanifold_edges"] == 0
 
 
 # ------------------------------------------------------------------------------------ mesh_quality

@@ -36,12 +36,21 @@ zero area or a repeated vertex set are removed, and an edge still shared by more
 keeps the two faces whose centroids have the smallest UDF. The faces are then wound consistently
 (closed components with outward normals), which the faithful output is not.
 
+Folds (``unfold_deg`` > 0). Where the field's minimum is a band rather than a sheet (a network
+trained on noisy points, leaves not much wider than the band), the QEF vertices of neighbouring
+leaves scatter across the band and the mesh zigzags: neighbouring faces meet at steep angles, and
+the surface gains area without coming closer to the data. Every vertex off the rim on an edge whose
+two faces meet at more than ``unfold_deg`` then moves to the mean of its neighbours and takes one
+projection step back onto the zero set, up to ``unfold_passes`` times. Rim vertices stay where the
+QEF put them (on the rim, for the reason above).
+
 Everything runs in torch on ``field.device``; lengths are in field units, ``h`` is the leaf edge.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import torch
@@ -397,6 +406,50 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.where(turn[label][:, None], out[:, ::-1], out)
 
 
+def _folded_vertices(pos: torch.Tensor, faces: torch.Tensor, cos_max: float) -> torch.Tensor:
+    """(V,) bool: the ends of the edges whose two faces' normals (faces (F, 3), consistently
+    wound, no edge with more than two faces) make an angle whose cosine is below ``cos_max``."""
+    tri = pos[faces]
+    normal = normalize(torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+    eid, face = _edge_face_incidence(faces, pos.shape[0])
+    order = torch.argsort(eid, stable=True)
+    e_s, f_s = eid[order], face[order]
+    pair = (e_s[1:] == e_s[:-1]).nonzero().squeeze(1)   # slots of the two faces of an interior edge
+    folded = pair[(normal[f_s[pair]] * normal[f_s[pair + 1]]).sum(1) < cos_max]
+    ends = torch.stack([faces, faces.roll(-1, 1)], -1).reshape(-1, 2)  # half-edges, in eid's order
+    out = torch.zeros(pos.shape[0], dtype=torch.bool, device=pos.device)
+    out[ends[order[folded]].reshape(-1)] = True
+    return out
+
+
+def unfold(field: Field, cfg: ExtractConfig, pos: torch.Tensor, faces: torch.Tensor, h: float,
+           degrees: float, passes: int) -> tuple[torch.Tensor, int]:
+    """Take the folds out of a mesh (vertices (V, 3), faces (F, 3) consistently wound, every edge
+    shared by at most two faces; ``h`` the leaf edge): up to ``passes`` times, every vertex not on
+    the rim with an edge whose two faces meet at more than ``degrees`` moves to the mean of its
+    neighbours, then takes one projection step onto the zero set. Returns the vertices and how
+    many moves were made (0 with ``degrees`` ≤ 0)."""
+    if degrees <= 0 or passes <= 0 or faces.shape[0] == 0:
+        return pos, 0
+    n = pos.shape[0]
+    cos_max = math.cos(math.radians(degrees))
+    edges = torch.sort(torch.stack([faces, faces.roll(-1, 1)], -1).reshape(-1, 2), 1).values
+    edges = edges[unique_rows(edges)[1]]
+    a, b = edges[:, 0], edges[:, 1]
+    degree = torch.bincount(torch.cat([a, b]), minlength=n).to(pos.dtype)
+    inner = ~_rim_vertices(faces, n)
+    moves = 0
+    for _ in range(passes):
+        rows = (_folded_vertices(pos, faces, cos_max) & inner).nonzero().squeeze(1)
+        if rows.numel() == 0:
+            break
+        total = torch.zeros_like(pos).index_add_(0, a, pos[b]).index_add_(0, b, pos[a])
+        pos = pos.clone()
+        pos[rows] = _project(field, cfg, total[rows] / degree[rows, None], h, 1)
+        moves += rows.numel()
+    return pos, moves
+
+
 # --------------------------------------------------------------------------------------------
 # The extractor
 # --------------------------------------------------------------------------------------------
@@ -413,7 +466,7 @@ def clean_udf_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET,
     coordinates (``process=False``; consistently wound, closed components with outward normals)
     or ``None`` when there is none.
     ``mesh.metadata`` carries counters (``leaves``, ``crossed_edges``, ``quads``,
-    ``nonmanifold_faces_removed``)."""
+    ``nonmanifold_faces_removed``, ``unfold_moves``)."""
     opts = CleanConfig() if opts is None else opts
     lat = Lattice.from_config(cfg)
     h = lat.cell_size()
@@ -441,10 +494,11 @@ def clean_udf_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET,
         faces = _drop_bad_faces(pos, faces, h)
         faces, removed = resolve_nonmanifold(field, cfg, pos, faces)
         faces = torch.as_tensor(orient_faces(pos.cpu().numpy(), faces.cpu().numpy()), device=faces.device)
+        pos, unfolded = unfold(field, cfg, pos, faces, h, opts.unfold_deg, opts.unfold_passes)
         meta = {"extractor": "dualmesh-udf", "mode": "clean", "leaves": int(ijk.shape[0]),
                 "crossed_edges": int(edges.shape[0]), "quads": int(local.shape[0]),
                 "vertex_cells": int(cells.shape[0]),
-                "nonmanifold_faces_removed": removed}
+                "nonmanifold_faces_removed": removed, "unfold_moves": unfolded}
         mesh = build_mesh(pos, faces, meta)
         advance(1)
     return mesh
