@@ -582,9 +582,9 @@ def _robust() -> Config:
     step pins the zero level to the data where few frames saw the bone and the tangent phase alone
     leaves the field above zero there. Leaves are kept ≥ 0.75 mm, so a small bone is not meshed
     finer than its data resolve, and the mesh's folds (faces meeting at more than 60°, where the QEF
-    vertices scatter across the noisy field's minimum) are smoothed out. The network is twice as wide as ``fast``'s (4 × 128): on these
-    points it follows the denoised surface more closely, for 1.6–1.8× the time (docs/robustness.md
-    measures each part)."""
+    vertices scatter across the noisy field's minimum) are smoothed out. The network is twice as
+    wide as ``fast``'s (4 × 128): on these points it follows the denoised surface more closely, for
+    1.6–1.8× the time (docs/robustness.md measures each part)."""
     cfg = _fast()
     cfg.model.hidden = (128, 128, 128, 128)
     cfg.data.max_voxels = 200_000

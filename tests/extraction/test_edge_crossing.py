@@ -176,9 +176,9 @@ def test_unfold_leaves_a_sphere_alone_and_keeps_a_torus_on_its_surface():
     check_clean(repaired, torus, torus_area(0.4, 0.1), 0, 6)   # still on the surface, same area
 
 
-def test_unfold_takes_the_zigzag_out_of_a_band():
-    # A sheet rippled at the leaf's scale (1.5 cells a period, ±0.15 cell): the QEF vertices follow
-    # the ripples across neighbouring leaves and the faces fold; the repair flattens them.
+def test_unfold_takes_the_zigzag_out_of_a_sheet_rippled_finer_than_the_leaves():
+    # Ripples of 1.5 cells a period and ±0.15 cell, as a noisy field's minimum wanders: the QEF
+    # vertices of neighbouring leaves land on different sides of them and the faces fold.
     class Rippled(Field):
         def _value_and_grad(self, x):
             a, k = 0.15 * 2.0 / 64, 2 * math.pi / (1.5 * 2.0 / 64)
