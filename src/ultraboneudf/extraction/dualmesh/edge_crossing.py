@@ -406,20 +406,15 @@ def orient_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.where(turn[label][:, None], out[:, ::-1], out)
 
 
-def _folded_vertices(pos: torch.Tensor, faces: torch.Tensor, cos_max: float) -> torch.Tensor:
-    """(V,) bool: the ends of the edges whose two faces' normals (faces (F, 3), consistently
-    wound, no edge with more than two faces) make an angle whose cosine is below ``cos_max``."""
-    tri = pos[faces]
-    normal = normalize(torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
-    eid, face = _edge_face_incidence(faces, pos.shape[0])
+def _interior_edges(faces: torch.Tensor, n_vertices: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """For every edge shared by two of the faces (F, 3) (none by more): its two faces (P, 2) and
+    its two ends (P, 2)."""
+    eid, face = _edge_face_incidence(faces, n_vertices)
     order = torch.argsort(eid, stable=True)
-    e_s, f_s = eid[order], face[order]
+    e_s = eid[order]
     pair = (e_s[1:] == e_s[:-1]).nonzero().squeeze(1)   # slots of the two faces of an interior edge
-    folded = pair[(normal[f_s[pair]] * normal[f_s[pair + 1]]).sum(1) < cos_max]
     ends = torch.stack([faces, faces.roll(-1, 1)], -1).reshape(-1, 2)  # half-edges, in eid's order
-    out = torch.zeros(pos.shape[0], dtype=torch.bool, device=pos.device)
-    out[ends[order[folded]].reshape(-1)] = True
-    return out
+    return torch.stack([face[order[pair]], face[order[pair + 1]]], 1), ends[order[pair]]
 
 
 def unfold(field: Field, cfg: ExtractConfig, pos: torch.Tensor, faces: torch.Tensor, h: float,
@@ -438,9 +433,15 @@ def unfold(field: Field, cfg: ExtractConfig, pos: torch.Tensor, faces: torch.Ten
     a, b = edges[:, 0], edges[:, 1]
     degree = torch.bincount(torch.cat([a, b]), minlength=n).to(pos.dtype)
     inner = ~_rim_vertices(faces, n)
+    two, ends = _interior_edges(faces, n)       # the mesh's connectivity does not change below
     moves = 0
     for _ in range(passes):
-        rows = (_folded_vertices(pos, faces, cos_max) & inner).nonzero().squeeze(1)
+        tri = pos[faces]
+        normal = normalize(torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+        folded = (normal[two[:, 0]] * normal[two[:, 1]]).sum(1) < cos_max
+        moving = torch.zeros(n, dtype=torch.bool, device=pos.device)
+        moving[ends[folded].reshape(-1)] = True
+        rows = (moving & inner).nonzero().squeeze(1)
         if rows.numel() == 0:
             break
         total = torch.zeros_like(pos).index_add_(0, a, pos[b]).index_add_(0, b, pos[a])
