@@ -5,9 +5,12 @@ Inputs (mm), per bone of ``../shared/data/bones`` (or ``ULTRABONEUDF_BONES``):
 * sweep levels, from ``ultraboneudf simulate`` (the predicted masks compounded with the recorded,
   tracking-noisy poses, as ``reconstruct SWEEP`` does; truth: the visible surface, mesh faces seen
   by a beam): ``clean`` (noise level ``none``: exact path, poses and masks), ``moderate`` (0.3 mm
-  noise along the beam, frames every 0.5 mm, the default segmentation errors) and ``hard`` (0.8 mm
+  noise along the beam, frames every 0.5 mm, the default segmentation errors), ``hard`` (0.8 mm
   noise along the beam, 3% of the scan lines a false echo up to 10 mm under the surface, frames
-  every 1.5 mm with three 4 mm runs missing, tracking error 0.3 mm / 0.3° per frame);
+  every 1.5 mm with three 4 mm runs missing, tracking error 0.3 mm / 0.3° per frame) and ``real``
+  (the false echoes of real segmentations: fascia sheets in front of the bone, streaks, clusters
+  under it, an offset drifting along the sweep; ``ultraboneudf.synth.NOISE_PRESETS``), and
+  ``real-cloud``: ``real``'s points without their probe positions and frames (a compounded cloud);
 * ``open``: 100,000 area samples of the faces whose normal has a positive z component (the README's
   open femur), truth: that surface; ``e6-S``: the same samples with Gaussian noise of σ = S mm
   added (the paper's experiment E6), truth: the noise-free surface.
@@ -58,7 +61,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_reconstruct import BONES  # noqa: E402
 
 METHODS = "ultraboneudf,poisson,capudf,funsr,carotidudf,vanilla_udf,ultraboneudf_pull"
-SWEEP_LEVELS = {"clean": "none", "moderate": "moderate", "hard": "hard"}
+SWEEP_LEVELS = {"clean": "none", "moderate": "moderate", "hard": "hard", "real": "real"}
+CLOUD_LEVELS = {"real-cloud": "real"}  # a sweep level's points without their probe positions and frames
 OFF_BONE_MM = 1.0
 BONE_SAMPLES = 2_000_000  # 0.16 mm apart on the largest bone's 50,000 mm²: far below OFF_BONE_MM
 LEVELS = "clean,moderate,hard,open,e6-0.5,e6-1.0,e6-1.5,e6-2.0"
@@ -81,6 +85,8 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
     from ultraboneudf import load_mesh
     from ultraboneudf.synth import facing_surface
 
+    cloud_only = level in CLOUD_LEVELS
+    level = CLOUD_LEVELS.get(level, level)
     if level not in SWEEP_LEVELS and level != "open" and not level.startswith("e6-"):
         raise SystemExit(f"unknown level {level!r}; choose from {LEVELS}")
     mesh = load_mesh(BONES / f"{bone}.ply")
@@ -131,6 +137,8 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
         from ultraboneudf.sweep import align_frames
 
         cp, _ = align_frames(cp)
+    if cloud_only:
+        return cp.points, None, truth, None
     return cp.points, cp.probe_position, truth, cp.frame_index
 
 
@@ -279,7 +287,7 @@ def main() -> None:
             for method in args.methods.split(","):
                 key = {"bone": bone, "level": level, "seed": args.seed, "method": method,
                        "preset": args.preset, "iters_override": args.iters, "set": args.set}
-                if level in SWEEP_LEVELS:
+                if level in SWEEP_LEVELS or level in CLOUD_LEVELS:
                     key["align"] = not args.no_align
                     key["sim"] = args.sim
                     key["fragments"] = not args.no_fragments

@@ -146,6 +146,21 @@ class DataConfig(_Section):
     """Sweeps (points with probe positions): drop the points that lie this many mm or more (up to
     10 mm) beneath another point along their own beam, within half a millimetre of it — false echoes
     in the acoustic shadow of the bone (after ``denoise``); 0 = keep them."""
+    front_echo_mm: float = 0.0
+    """Drop the echoes up to this many mm in front of a denser layer of echoes (the bone's band) along
+    its normal, on the probe's side (:mod:`~ultraboneudf.geometry.echo_layers`): soft-tissue sheets,
+    clusters and streaks that real segmentations take for bone. The probe's side is the probe's
+    where the points' probe positions are known, else the side away from which the bone bends
+    (bone is mostly convex); echoes behind a layer are kept (both faces of a thin plate of bone are
+    bone). Needs ``surface_fit_mm``; 0 = keep them."""
+    front_echo_ratio: float = 2.0
+    """``front_echo_mm``: how many times denser the bone's layer must be than an echo's own layer (±1 mm
+    along the column) for the echo to count as lying in front of it."""
+    min_component: float = 0.0
+    """After ``front_echo_mm``, for points without probe positions (a compounded cloud): drop the
+    groups of points (linked across gaps under ``surface_fit_mm``) smaller than this fraction of the
+    largest group — clusters of echoes detached from the bone. A sweep's fragments are judged by its
+    frames instead (``reconstruct SWEEP``); 0 = keep all."""
     bridge: float = 0.0
     """Gaps in the data up to this × the local plane radius (``surface_fit_mm``, or the wider radius
     the fit needed, at most twice ``surface_fit_mm``) count as surface: for the ``surface`` distance target and for the support trim
@@ -595,6 +610,8 @@ def _robust() -> Config:
     cfg.data.frame_bridge = 2.5
     cfg.data.rim_reach = 0.5
     cfg.data.steep_planes_deg = 80.0
+    cfg.data.front_echo_mm = 30.0
+    cfg.data.min_component = 0.02
     cfg.loss.distance_target = "surface"
     cfg.loss.lambda_os = 10.0
     cfg.loss.os_rows = 256

@@ -29,6 +29,7 @@ from .errors import FitWarning, InputError
 from .evaluation.data_fit import data_fit
 from .extraction import extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
+from .geometry.echo_layers import false_echoes
 from .geometry.frames import frame_axes, sweep_ends
 from .geometry.normalize import Normalizer
 from .geometry.support import DataSurface
@@ -354,9 +355,9 @@ def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: in
             end = np.where(length > 0.5, end / np.maximum(length, 1e-12), 0.0)
             planes = dataclasses.replace(planes, frame_axis=axis, frame_order=np.rint(voxel_attrs[:, 6]),
                                          frame_end=end)
-    elif d.denoise or d.outlier_sigmas > 0 or d.shadow_mm > 0:
-        raise InputError("data.denoise, data.outlier_sigmas and data.shadow_mm need the local planes: "
-                         "set data.surface_fit_mm > 0")
+    elif d.denoise or d.outlier_sigmas > 0 or d.shadow_mm > 0 or d.front_echo_mm > 0 or d.min_component > 0:
+        raise InputError("data.denoise, data.outlier_sigmas, data.shadow_mm, data.front_echo_mm and "
+                         "data.min_component need the local planes: set data.surface_fit_mm > 0")
     normalizer = Normalizer.fit(voxelised)
     voxel_probe = None if voxel_attrs is None else voxel_attrs[:, :3]
     return _UnitCloud(points=normalizer.forward(voxelised),
@@ -390,10 +391,11 @@ def _local_plane_stage(points: np.ndarray, attrs: np.ndarray | None, d: DataConf
             view = points - attrs[:, :3]
             view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
         planes = fit_local_planes(points, d.surface_fit_mm, view=view, steep_deg=d.steep_planes_deg)
-        keep = np.ones(len(points), dtype=bool)
+        keep = ~false_echoes(points, planes, view, depth=d.front_echo_mm, ratio=d.front_echo_ratio,
+                             fraction=d.min_component)
         if d.outlier_sigmas > 0:
             spare = None if view is None else steep_echoes(points, view, planes, _STEEP_ECHO_SHADOW_MM)
-            keep = ~planes.outliers(d.outlier_sigmas, 0.1 * d.surface_fit_mm, spare)
+            keep &= ~planes.outliers(d.outlier_sigmas, 0.1 * d.surface_fit_mm, spare)
         if not keep.any():
             raise InputError(f"{source}: no point has enough neighbours within data.surface_fit_mm = "
                              f"{d.surface_fit_mm:g} mm to form a surface (is the cloud in mm?)")

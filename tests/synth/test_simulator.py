@@ -244,3 +244,39 @@ def test_simulate_set_values_take_the_options_own_types(tmp_path, capsys):
         assert main(["simulate", str(mesh), "-o", str(tmp_path / "out"), "--set", item]) == 2
         err = capsys.readouterr().err
         assert words in err and len(err.strip().splitlines()) == 1
+
+
+def test_real_level_adds_sheets_in_front_streaks_and_clusters_under_the_bone(capsule):
+    """The ``real`` level's clutter (``pred_sheets_per_cm``, ``pred_streaks_per_frame``,
+    ``pred_below_per_cm``) puts persistent false echoes outside the capsule (in front of the bone)
+    and inside it (under the bone), from a random stream of its own: the masks of the bone itself
+    are the same pixels with and without it."""
+    base = dict(pred_gap_fraction=0.0, pred_fp_per_frame=0.0, pred_jitter_px=0.0, pred_bias_px=0.0,
+                pred_thickness_px=1, n_frames=None, frame_spacing_mm=1.0, n_fascia=0)
+    clean = simulate_sweep(capsule, small("none", **base))
+    busy = simulate_sweep(capsule, small("none", **base, pred_sheets_per_cm=2.0, pred_streaks_per_frame=1.0,
+                                         pred_below_per_cm=2.0))
+    assert (busy.pred_masks >= clean.pred_masks).all()        # only added: the bone's pixels are unchanged
+    added = busy.pred_masks & ~clean.pred_masks
+    sim = busy.sweep.with_masks(added)
+    pts = compound(sim, top_only=False).points
+    r = np.linalg.norm(pts[:, :2], axis=1)
+    inside = (r < RADIUS - 1.5) & (np.abs(pts[:, 2]) < HALF)
+    outside = capsule_distance(pts) > 2.5
+    assert (outside & ~inside).mean() > 0.5                  # sheets and streaks toward the probe
+    assert inside.sum() > 100                                # reverberation clusters under the surface
+    # sheets persist over neighbouring frames: the frames with added echoes come in runs
+    frames = np.flatnonzero(added.any(axis=(1, 2)))
+    assert len(frames) > 5 and np.mean(np.diff(frames) == 1) > 0.5
+
+
+def test_real_level_offsets_the_boundary_slowly_along_the_sweep(capsule):
+    base = dict(pred_gap_fraction=0.0, pred_fp_per_frame=0.0, pred_jitter_px=0.0, pred_bias_px=0.0,
+                pred_thickness_px=1, n_frames=None, frame_spacing_mm=1.0)
+    shifted = simulate_sweep(capsule, small("none", **base, pred_offset_mm=1.0))
+    cp = compound(shifted.sweep)
+    d = capsule_distance(cp.points)
+    per_frame = np.array([np.median(d[cp.frame_index == f]) for f in np.unique(cp.frame_index)])
+    assert 0.4 < np.median(per_frame) < 1.6                 # about a millimetre off the surface
+    assert np.abs(np.diff(per_frame)).max() < 0.6            # drifting, not jumping, frame to frame
+    assert config_with_noise("real").pred_offset_mm == 1.0

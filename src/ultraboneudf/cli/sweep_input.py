@@ -37,7 +37,9 @@ def add_sweep_options(p: argparse.ArgumentParser) -> None:
                    help="transform sequence file(s) for an image sequence without its own transforms "
                         "(3D Slicer saves each transform sequence as a .seq.mha); repeatable")
     g.add_argument("--segment", default="auto",
-                   help="auto (the sweep's masks if any, else classical), masks, classical, or the "
+                   help="auto (the sweep's masks if any, else classical), masks, classical, "
+                        "probability (the frames are already a bone map, e.g. the output of PLUS's "
+                        "bone enhancer: bone where at least --threshold of full brightness), or the "
                         "path of a TorchScript (.pt) / ONNX (.onnx) model (default: auto)")
     g.add_argument("--masks", type=Path, default=None,
                    help="bone masks for the frames: folder of PNGs (matched by name or order), .npy or "
@@ -51,7 +53,7 @@ def add_sweep_options(p: argparse.ArgumentParser) -> None:
                         "detector drops them point by point, and for every segmentation the isolated "
                         "fragments seen in one or two frames are dropped)")
     g.add_argument("--threshold", type=float, default=0.5,
-                   help="learned model: probability threshold (default 0.5)")
+                   help="learned model or --segment probability: probability threshold (default 0.5)")
     g.add_argument("--no-align-frames", action="store_true",
                    help="keep every frame where the tracker put it (by default each frame is "
                         "registered rigidly to its neighbouring frames, removing per-frame tracking "
@@ -136,6 +138,7 @@ def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, to
     from ..sweep.chain import frames_coplanar
     from ..sweep.consistency import drop_unconfirmed_fragments
     from ..sweep.formats.images import load_mask_stack
+    from ..sweep.probability import looks_like_bone_map
 
     sweep = read_sweep(path, progress=progress, **read_options(args, path))
     chain = sweep.meta.get("chain")
@@ -184,6 +187,9 @@ def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, to
             rep = info["segmentation"]
             if rep["no_tissue_frames"] == sweep.n_frames:
                 why = "; no frame images soft tissue (water or gel only)"
+                if looks_like_bone_map(sweep.images):
+                    why += ("; if the frames are a bone map (dark but for the bone, e.g. a bone "
+                            "enhancer's output), give --segment probability")
             elif rep["no_tissue_frames"] or rep["low_confidence_frames"]:
                 why = (f"; {rep['no_tissue_frames']} frame(s) image no soft tissue, "
                        f"{rep['low_confidence_frames']} have only weak echoes")

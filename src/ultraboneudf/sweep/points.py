@@ -18,13 +18,14 @@ from ..progress import QUIET, Progress
 from .compound import CompoundedPoints, compound
 from .consistency import confirmed_by_frames, drop_unconfirmed_fragments
 from .learned import LearnedSegmenter, is_model_path
+from .probability import probability_masks
 from .model import Sweep
 from .outliers import OUTLIER_RULES, outlier_mask
 from .formats import read_sweep
 from .bone import classical_bone_masks
 from .segment import BoneDetector
 
-SEGMENT_CHOICES = ("auto", "masks", "classical")
+SEGMENT_CHOICES = ("auto", "masks", "classical", "probability")
 
 
 def segment_sweep(sweep: Sweep, segment: str = "auto", detector: Mapping[str, Any] | BoneDetector | None = None,
@@ -33,7 +34,9 @@ def segment_sweep(sweep: Sweep, segment: str = "auto", detector: Mapping[str, An
     """Bone masks ``(F, H, W)`` for a sweep and the name of the method used.
 
     ``segment``: ``auto`` (the sweep's masks if it has them, else the classical detector),
-    ``masks`` (the sweep's masks; error if none), ``classical``
+    ``masks`` (the sweep's masks; error if none), ``probability`` (the frames are a bone map, e.g. a
+    bone enhancer's output: :func:`~.probability.probability_masks` at ``model_options``'
+    ``threshold``, 0.5 by default), ``classical``
     (:func:`~ultraboneudf.sweep.bone.classical_bone_masks`: :class:`BoneDetector` with the
     ``detector`` options in the sweep's imaged region, then the frame-to-frame consistency
     filter; as the command line), or the path of a TorchScript/ONNX model file (:class:`LearnedSegmenter`
@@ -47,11 +50,14 @@ def segment_sweep(sweep: Sweep, segment: str = "auto", detector: Mapping[str, An
             raise InputError(f"{src}: the sweep has no bone masks (give masks, or segment with "
                              f"'classical' or a model file)")
         return sweep.masks, "masks"
-    if segment != "classical" and not (is_model_path(segment) or Path(segment).is_file()):
-        raise InputError(f"unknown segmentation {segment!r}: use auto, masks, classical or the path "
-                         f"of a TorchScript/ONNX model file")
+    if segment not in ("classical", "probability") and not (is_model_path(segment) or Path(segment).is_file()):
+        raise InputError(f"unknown segmentation {segment!r}: use auto, masks, classical, probability or "
+                         f"the path of a TorchScript/ONNX model file")
     if sweep.images is None:
         raise InputError(f"{src}: the sweep has no B-mode frames to segment")
+    if segment == "probability":
+        return probability_masks(sweep.images, float((model_options or {}).get("threshold", 0.5)), src), \
+            "probability"
     if segment == "classical":
         masks, _ = classical_bone_masks(sweep, detector, progress=progress)
         return masks, "classical"
@@ -73,7 +79,8 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
     Args:
         sweep: a :class:`Sweep`, or the path of a sweep folder / sequence file (read with
             :func:`~ultraboneudf.sweep.formats.read_sweep` and ``read_options``).
-        segment: ``auto`` | ``masks`` | ``classical`` | model file path (see :func:`segment_sweep`).
+        segment: ``auto`` | ``masks`` | ``classical`` | ``probability`` | model file path (see
+            :func:`segment_sweep`).
         masks: bone masks for the frames (array ``(F, H, W)``, folder of PNGs, ``.npy``/``.npz``),
             overriding the sweep's own.
         detector: :class:`BoneDetector` or its options (``{field: value}``, lengths in mm).

@@ -30,7 +30,10 @@ Model (all lengths in mm):
   jitter (``pred_jitter_px``), ``pred_thickness_px`` thick; gaps (``pred_gap_fraction`` of the
   columns in runs of mean ``pred_gap_mean_mm``), weak echoes dropped above
   ``pred_max_incidence_deg``, and ``pred_fp_per_frame`` off-surface false positives (short
-  segments on fascia or just below the bone, like reverberations).
+  segments on fascia or just below the bone, like reverberations); for the ``real`` level also an
+  offset along the beam drifting along the sweep and false echoes that persist over neighbouring
+  frames, from their own random stream (:func:`add_clutter`: fascia sheets in front of the bone,
+  streaks rising from it, reverberation clusters under it).
 * **Tracking.** Recorded pose = true pose perturbed by a random rotation (``tracking_noise_deg``
   per axis, about the probe face centre) and translation (``tracking_noise_mm`` per axis).
 * **Visible truth.** Beams every ``gt_step_mm`` across the image and along the sweep (poses
@@ -385,8 +388,9 @@ def _runs_mask(rng: np.random.Generator, n: int, fraction: float, mean_len: floa
 
 
 def predicted_mask(rows: np.ndarray, incidence: np.ndarray, fascia_y: np.ndarray,
-                   cfg: SimulationConfig, rng: np.random.Generator) -> np.ndarray:
-    """A 'predicted' mask ``(H, W)`` with realistic errors from the true rows ``(W,)`` (nan: none)."""
+                   cfg: SimulationConfig, rng: np.random.Generator, offset_px: float = 0.0) -> np.ndarray:
+    """A 'predicted' mask ``(H, W)`` with realistic errors from the true rows ``(W,)`` (nan: none),
+    its boundary moved ``offset_px`` down the beams."""
     h, w = cfg.height_px, cfg.width_px
     mask = np.zeros((h, w), dtype=bool)
     ok = np.isfinite(rows)
@@ -404,7 +408,7 @@ def predicted_mask(rows: np.ndarray, incidence: np.ndarray, fascia_y: np.ndarray
         false = ok & (rng.random(w) < cfg.pred_fp_fraction)
         jitter = jitter + np.where(false, rng.uniform(0.0, cfg.pred_fp_depth_mm / cfg.spacing_mm, w), 0.0)
     cols = np.flatnonzero(ok)
-    top = np.rint(rows[cols] + jitter[cols]).astype(np.int64)
+    top = np.rint(rows[cols] + jitter[cols] + offset_px).astype(np.int64)
     for t in range(max(1, cfg.pred_thickness_px)):
         r = top + t
         good = (r >= 0) & (r < h)
@@ -430,6 +434,58 @@ def predicted_mask(rows: np.ndarray, incidence: np.ndarray, fascia_y: np.ndarray
             good = (r + t >= 0) & (r + t < h)
             mask[r[good] + t, cs[good]] = True
     return mask
+
+
+def add_clutter(masks: np.ndarray, depths: np.ndarray, fascia: list[_Fascia], xs: np.ndarray, frame_mm: float,
+                cfg: SimulationConfig, rng: np.random.Generator) -> None:
+    """Add to the predicted ``masks`` (F, H, W), in place, the false echoes of real segmentations
+    that persist over neighbouring frames (``pred_sheets_per_cm``, ``pred_streaks_per_frame``,
+    ``pred_below_per_cm``): sheets in front of the bone, streaks rising from it toward the probe,
+    reverberation clusters under it. ``depths`` (F, W): the bone's depth per beam (mm, inf: none);
+    ``xs`` (W,): the beams' lateral positions (mm); ``frame_mm``: the mean frame spacing."""
+    n, h, w = masks.shape
+    sp = cfg.spacing_mm
+    length_cm = n * frame_mm / 10.0
+
+    def patch(width_mm: tuple[float, float], run_mm: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+        cols = max(2, int(round(rng.uniform(*width_mm) / sp)))
+        c0 = int(rng.integers(0, max(1, w - cols)))
+        k0 = int(rng.integers(0, n))
+        frames = np.arange(k0, min(n, k0 + max(1, int(round(rng.uniform(*run_mm) / frame_mm)))))
+        return frames, np.arange(c0, min(w, c0 + cols))
+
+    def label(k: int, cols: np.ndarray, rows_mm: np.ndarray, thick: int = 2) -> None:
+        seen = np.isfinite(rows_mm)
+        r = np.rint(np.where(seen, rows_mm, -1.0) / sp).astype(np.int64)
+        for t in range(thick):
+            good = seen & (r + t >= 0) & (r + t < h)
+            masks[k, r[good] + t, cols[good]] = True
+
+    for _ in range(rng.poisson(cfg.pred_sheets_per_cm * length_cm)):
+        frames, cols = patch((4.0, 20.0), (5.0, 25.0))
+        j = int(rng.integers(0, len(fascia))) if fascia else -1
+        lift = rng.uniform(3.0, 15.0)
+        for k in frames:
+            if j >= 0:
+                label(k, cols, fascia_depths([fascia[j]], xs, k)[0, cols])
+            else:
+                label(k, cols, np.where(np.isfinite(depths[k, cols]), depths[k, cols] - lift, np.nan))
+    for k in range(n):
+        for _ in range(rng.poisson(cfg.pred_streaks_per_frame)):
+            bone = np.flatnonzero(np.isfinite(depths[k]))
+            if len(bone) == 0:
+                break
+            c = int(rng.choice(bone))
+            cols = np.arange(c, min(w, c + int(rng.integers(1, 4))))
+            top = max(0.0, depths[k, c] - rng.uniform(3.0, 20.0))
+            rows = np.arange(int(top / sp), int(depths[k, c] / sp))
+            for col in cols:
+                masks[k, rows[rows < h], col] = True
+    for _ in range(rng.poisson(cfg.pred_below_per_cm * length_cm)):
+        frames, cols = patch((3.0, 12.0), (3.0, 10.0))
+        drop = rng.uniform(2.0, 6.0)
+        for k in frames:
+            label(k, cols, depths[k, cols] + drop)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -512,6 +568,9 @@ def simulate_sweep(mesh: trimesh.Trimesh, config: SimulationConfig | None = None
     pred_masks = np.zeros((n, h, w), dtype=bool)
     depths = np.full((n, w), np.inf)
     incid = np.full((n, w), np.nan)
+    clutter = np.random.default_rng([cfg.seed, 1])  # its own stream: the other levels stay as they were
+    offset_px = (cfg.pred_offset_mm / cfg.spacing_mm * _smooth_noise(clutter, n, sigma=max(1.0, n / 6))[:, 0]
+                 if cfg.pred_offset_mm > 0 else np.zeros(n))
     with progress.stage("simulate", n) as advance:
         for k in range(n):
             depth, face = slicer.hits(poses[k], xs)
@@ -525,8 +584,9 @@ def simulate_sweep(mesh: trimesh.Trimesh, config: SimulationConfig | None = None
             true_masks[k, rows[cols].astype(np.int64), cols] = True
             fy = fascia_depths(fascia, xs, k)
             images[k] = bmode_image(depth, inc, fy, fascia, cfg, rng)
-            pred_masks[k] = predicted_mask(rows, inc, fy, cfg, rng)
+            pred_masks[k] = predicted_mask(rows, inc, fy, cfg, rng, offset_px[k])
             advance(1)
+    add_clutter(pred_masks, depths, fascia, xs, float(path_info["mean_frame_spacing_mm"]), cfg, clutter)
     recorded = perturb_poses(poses, cfg, rng)
     beam_mm = truth_beam_spacing(mesh, cfg)
     dense = _interpolate_poses(poses, beam_mm, w * cfg.spacing_mm)

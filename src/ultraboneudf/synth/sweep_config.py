@@ -82,6 +82,19 @@ class SimulationConfig:
     instead: the true surface is missed there and a pixel lies ``U(0, pred_fp_depth_mm)`` deeper."""
     pred_fp_depth_mm: float = 10.0
     """How far under the surface the scattered false echoes of ``pred_fp_fraction`` reach."""
+    pred_offset_mm: float = 0.0
+    """Amplitude (std, mm) of an offset of the predicted boundary along the beam that drifts slowly
+    along the sweep (a segmentation that takes the band's top or bottom, a calibration error)."""
+    pred_sheets_per_cm: float = 0.0
+    """Mean number, per 10 mm of sweep, of false-echo sheets in front of the bone: a fascia line (or,
+    without one, a smooth layer 3–15 mm above the bone) taken for bone over a patch 4–20 mm wide
+    for 5–25 mm of the sweep."""
+    pred_streaks_per_frame: float = 0.0
+    """Mean number of streaks per frame: a run of one to three scan lines labelled from the bone up
+    toward the probe, 3–20 mm long."""
+    pred_below_per_cm: float = 0.0
+    """Mean number, per 10 mm of sweep, of echo clusters under the bone (reverberation): the bone
+    line copied 2–6 mm deeper over a patch 3–12 mm wide for 3–10 mm of the sweep."""
     missing_runs: int = 0
     """Runs of consecutive frames missing from the recording (probe lifted, tracking lost); the
     visible truth still covers them, so a reconstruction must bridge them."""
@@ -111,12 +124,20 @@ NOISE_PRESETS: dict[str, dict[str, float]] = {
     "hard": dict(pred_beam_noise_mm=0.8, pred_fp_fraction=0.03, pred_fp_depth_mm=10.0,
                  frame_spacing_mm=1.5, missing_runs=3, missing_run_mm=4.0,
                  tracking_noise_mm=0.3, tracking_noise_deg=0.3),
+    "real": dict(pred_beam_noise_mm=1.0, pred_fp_fraction=0.01, pred_fp_depth_mm=10.0,
+                 frame_spacing_mm=1.0, speed_variation=0.6, missing_runs=2, missing_run_mm=4.0,
+                 tracking_noise_mm=0.3, tracking_noise_deg=0.3, pred_offset_mm=1.0,
+                 pred_sheets_per_cm=0.35, pred_streaks_per_frame=0.4, pred_below_per_cm=0.2),
 }
 """Named noise levels for ``simulate --noise``: ``none`` (ideal sweep and masks), ``default``,
 ``high`` (a shaky hand, poor masks), and the robustness benchmark's ``moderate`` (0.3 mm noise along
 the beam, frames every 0.5 mm) and ``hard`` (0.8 mm noise along the beam, 3% of the scan lines a
 false echo up to 10 mm under the surface, frames every 1.5 mm with three 4 mm runs missing,
-tracking error 0.3 mm / 0.3° per frame), each on top of ``default``'s segmentation errors."""
+tracking error 0.3 mm / 0.3° per frame), and ``real``, the false echoes of real segmentations
+(docs/real_data.md): 1 mm noise along the beam and an offset along it drifting by 1 mm along the
+sweep, frames every 1 mm at a varying pace, two runs of lost frames, fascia sheets taken for bone
+in front of it, streaks rising from it toward the probe and reverberation clusters under it; each
+on top of ``default``'s segmentation errors."""
 
 
 def config_with_noise(noise: str = "default", **overrides: Any) -> SimulationConfig:

@@ -1,0 +1,320 @@
+"""Real ultrasound against CT: every method on real compounded clouds and on a real tracked sweep.
+
+Inputs (paths given on the command line, mm, each in the frame of its CT):
+
+* ``--cloud NAME=POINTS,CT`` (repeatable), or ``--clouds DIR`` for every ``*_us.npy`` beside its
+  ``*_ct.stl``: a compounded ultrasound cloud (any file ``reconstruct`` reads) and the CT bone mesh.
+  UltraBonesHip's early-access clouds (specimen 00: left femur, pelvis; Wu et al.,
+  luohwu/NeuralBoneReg-implementation) are laid out so.
+* ``--sweep DIR --ct MESH``: a tracked sweep and the CT of one bone it images, e.g. the whole sweep of
+  the public UltraBones100k repository (``CT-US bone alignment optimization/record_folder``: its
+  ``UltrasoundImages`` as ``frames/``, ``sweep_initial.csv`` as ``poses.csv`` and the calibration of
+  the sample, ``docs/sweep.md``) with ``CT_models/Fibula.stl``. ``--frame-steps 1,3,10`` takes every
+  k-th frame. Each step's points come from ``sweep2points`` (segmentation, compounding, the front
+  end's filters, frame registration), cached under ``--cache``, and are reconstructed twice: with
+  each point's probe position and frame (``sweep``: what ``reconstruct SWEEP`` does) and without
+  (``cloud``: what a user with only the cloud gets).
+
+Scores, as the paper scores real data (every distance over ``--samples`` area samples of each mesh):
+pseudo ground truth (pGT) = the CT surface within 2 mm of an input point; ``cd_mm`` = ½(mean mesh →
+pGT + mean pGT → mesh); ``hd95_mm`` = the larger directed 95th percentile; ``on_bone`` = share of the
+mesh area within 2 mm of the CT; ``covered`` = share of the pGT within 2 mm of the mesh; ``pieces`` =
+connected pieces of the mesh; ``off_mm2`` = mesh area more than 2 mm from the CT (on the sweep: the
+other bones in view, such as the tibia, and anything invented). The row ``points`` scores the input
+points themselves as if they were the surface. ``time_s`` is end to end.
+
+The input points are described against the CT too (``--describe``, also printed with every run):
+their distance to the bone in bands, and the groups that the points more than 2 mm off it form
+(linked across 2 mm gaps): how many, how large, their shape (``line``, ``sheet``, ``blob`` by the
+spread of their principal axes) and their side (in front of the bone, outside the CT, or behind it).
+
+    python benchmarks/bench_real.py --clouds REAL_CLOUDS_DIR --methods ultraboneudf,ultraboneudf@fast,poisson
+    python benchmarks/bench_real.py --sweep SWEEP_DIR --ct Fibula.stl --frame-steps 3,10
+    python benchmarks/bench_real.py --clouds DIR --json bench_out/real.jsonl --pictures bench_out/real_png
+    python benchmarks/bench_real.py --clouds DIR --describe
+
+Rows are appended to ``--json`` as they finish and a rerun skips those already there (same case,
+method, preset, seed, iterations and ``--set``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+METHODS = "ultraboneudf,poisson,capudf,funsr,carotidudf,vanilla_udf,ultraboneudf_pull"
+PSEUDO_GT_MM = 2.0
+ON_BONE_MM = 2.0
+CT_SAMPLES = 2_000_000
+GROUP_LINK_MM = 2.0
+COLUMNS = ["case", "variant", "method", "preset", "cd_mm", "hd95_mm", "on_bone", "covered", "pieces", "off_mm2",
+           "time_s"]
+
+
+class Truth:
+    """A CT bone mesh prepared for scoring one input: dense samples with their outward normals, and
+    the pseudo ground truth of the input points."""
+
+    def __init__(self, ct_path: Path, points: np.ndarray, samples: int = CT_SAMPLES):
+        from ultraboneudf import load_mesh
+        from ultraboneudf.evaluation.sampling import sample_surface
+        from ultraboneudf.geometry.neighbors import kd_tree
+
+        self.mesh = load_mesh(ct_path)
+        self.samples = sample_surface(self.mesh, samples, seed=1)
+        self.tree = kd_tree(self.samples)
+        self._vertices = kd_tree(np.asarray(self.mesh.vertices))
+        d = kd_tree(points).query(self.samples, k=1, distance_upper_bound=PSEUDO_GT_MM * 1.0001,
+                                  workers=-1)[0]
+        self.pgt = self.samples[d <= PSEUDO_GT_MM]
+        self.pgt_tree = kd_tree(self.pgt)
+
+    def signed(self, points: np.ndarray) -> np.ndarray:
+        """Distance (N,) of each point to the CT surface, positive outside the bone (in front of it;
+        the side from the nearest vertex's normal)."""
+        d = self.tree.query(points, k=1, workers=-1)[0]
+        _, v = self._vertices.query(points, k=1, workers=-1)
+        side = np.einsum("ij,ij->i", points - self.mesh.vertices[v], self.mesh.vertex_normals[v])
+        return np.where(side < 0, -d, d)
+
+    def score(self, surface: np.ndarray, area: float | None = None) -> dict:
+        """The scores of the module docstring for area samples (or points) ``surface`` of a mesh of
+        ``area`` mm² (``None`` for points)."""
+        from ultraboneudf.geometry.neighbors import kd_tree
+
+        d_rg = self.pgt_tree.query(surface, k=1, workers=-1)[0]
+        d_gr = kd_tree(surface).query(self.pgt, k=1, workers=-1)[0]
+        off = self.tree.query(surface, k=1, workers=-1)[0] > ON_BONE_MM
+        return {"cd_mm": round(0.5 * float(d_rg.mean() + d_gr.mean()), 3),
+                "hd95_mm": round(max(float(np.percentile(d_rg, 95)), float(np.percentile(d_gr, 95))), 2),
+                "on_bone": round(1.0 - float(off.mean()), 3), "covered": round(float(np.mean(d_gr <= 2.0)), 3),
+                "off_mm2": None if area is None else round(float(area * off.mean()), 1)}
+
+
+def describe(points: np.ndarray, truth: Truth) -> dict:
+    """The input points against the CT: distance bands and the off-bone groups (module docstring)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from ultraboneudf.geometry.neighbors import kd_tree
+
+    s = truth.signed(points)
+    d = np.abs(s)
+    out = {"points": len(points), "median_mm": round(float(np.median(d)), 2),
+           "band": {k: round(float(np.mean(m)), 3) for k, m in
+                    (("<=2", d <= 2), ("2-5", (d > 2) & (d <= 5)), ("5-15", (d > 5) & (d <= 15)), (">15", d > 15))},
+           "max_mm": round(float(d.max()), 1), "off_in_front": round(float(np.mean(s[d > 2] > 0)), 3) if (d > 2).any() else None}
+    off = np.flatnonzero(d > 2)
+    if len(off) > 1:
+        pairs = kd_tree(points[off]).query_pairs(GROUP_LINK_MM, output_type="ndarray")
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(off), len(off)))
+        _, label = connected_components(graph, directed=False)
+        size = np.bincount(label)
+        shapes = {"line": 0, "sheet": 0, "blob": 0, "single": 0}
+        in_shape = dict.fromkeys(shapes, 0)
+        for g in np.flatnonzero(size >= 1):
+            rows = off[label == g]
+            kind = "single" if len(rows) < 5 else _shape(points[rows])
+            shapes[kind] += 1
+            in_shape[kind] += len(rows)
+        out["off_groups"] = {"count": int(len(size)), "size_median": float(np.median(size)),
+                             "size_max": int(size.max()), "by_shape": shapes,
+                             "points_by_shape": {k: round(v / len(off), 3) for k, v in in_shape.items()}}
+    return out
+
+
+def _shape(p: np.ndarray) -> str:
+    """``line``, ``sheet`` or ``blob`` by the principal spreads of the points ``p``."""
+    lam = np.sort(np.linalg.eigvalsh(np.cov(p.T)))[::-1]
+    if lam[1] < 0.1 * lam[0]:
+        return "line"
+    return "sheet" if lam[2] < 0.1 * lam[1] else "blob"
+
+
+def clouds_from(args: argparse.Namespace) -> list[tuple[str, Path, Path]]:
+    """(name, points file, CT mesh) of every cloud named on the command line."""
+    out = []
+    for item in args.cloud:
+        name, _, paths = item.partition("=")
+        pts, _, ct = paths.partition(",")
+        if not (name and pts and ct):
+            sys.exit(f"--cloud {item!r}: expected NAME=POINTS,CT")
+        out.append((name, Path(pts), Path(ct)))
+    if args.clouds:
+        for us in sorted(args.clouds.glob("*_us.npy")):
+            ct = us.with_name(us.name[: -len("_us.npy")] + "_ct.stl")
+            if ct.exists():
+                out.append((us.name[: -len("_us.npy")], us, ct))
+    return out
+
+
+def sweep_points(sweep: Path, step: int, cache: Path, seed_log) -> Path:
+    """The sweep's points at every ``step``-th frame (``sweep2points``), cached as PLY with each
+    point's probe position and frame."""
+    out = cache / f"{sweep.name}_step{step}.ply"
+    if not out.exists():
+        import subprocess
+
+        cache.mkdir(parents=True, exist_ok=True)
+        cmd = [sys.executable, "-m", "ultraboneudf.cli", "sweep2points", str(sweep), "-o", str(out),
+               "--frame-step", str(step), "--quiet"]
+        t0 = time.perf_counter()
+        subprocess.run(cmd, check=True)
+        seed_log(f"sweep2points every {step}th frame: {time.perf_counter() - t0:.0f} s")
+    return out
+
+
+def run(method: str, preset: str, points: np.ndarray, truth: Truth, args: argparse.Namespace, probe=None,
+        frames=None):
+    """One reconstruction and its scores; returns the row and the mesh (``None`` on failure)."""
+    import ultraboneudf
+    from ultraboneudf.errors import InputError
+    from ultraboneudf.evaluation.sampling import sample_surface
+
+    overrides = {"train.iters": args.iters} if args.iters and method != "poisson" else {}
+    t0 = time.perf_counter()
+    try:
+        rec = ultraboneudf.reconstruct(points, preset=preset, device=args.device, seed=args.seed, method=method,
+                                       assignments=args.set, probe_positions=probe, frame_index=frames,
+                                       **overrides)
+    except InputError as exc:  # e.g. the Poisson extra is not installed
+        return {"error": str(exc)}, None
+    row = {"time_s": round(time.perf_counter() - t0, 1), "points": len(points)}
+    if rec.mesh is None:
+        return {**row, "failed": True}, None
+    row.update(truth.score(sample_surface(rec.mesh, args.samples, seed=0), float(rec.mesh.area)))
+    row["pieces"] = int(rec.quality.get("components", 0))
+    return row, rec.mesh
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--cloud", action="append", default=[], metavar="NAME=POINTS,CT")
+    p.add_argument("--clouds", type=Path, help="a folder of *_us.npy clouds with their *_ct.stl")
+    p.add_argument("--sweep", type=Path, help="a tracked sweep (folder or sequence file)")
+    p.add_argument("--ct", type=Path, help="the CT bone mesh of --sweep")
+    p.add_argument("--frame-steps", default="1,3,10")
+    p.add_argument("--methods", default=METHODS, help="comma-separated; METHOD@PRESET runs a method with "
+                   "another preset than --preset (e.g. ultraboneudf@fast)")
+    p.add_argument("--preset", default="robust")
+    p.add_argument("--iters", type=int, default=None)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--samples", type=int, default=300_000, help="area samples per mesh")
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--describe", action="store_true", help="only describe the inputs against their CT")
+    p.add_argument("--cache", type=Path, default=Path("bench_out/real_inputs"))
+    p.add_argument("--json", type=Path, help="append each row here (JSON lines); skip rows already in it")
+    p.add_argument("--pictures", type=Path, help="one distance-coloured PNG per input here")
+    p.add_argument("--meshes", type=Path, help="write each mesh here (CASE_VARIANT_METHOD_PRESET.ply, mm); a "
+                   "row already in --json takes its mesh from here for the pictures")
+    args = p.parse_args()
+    import torch
+
+    from ultraboneudf import load_points
+    from ultraboneudf.io import load_sweep_columns
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    log = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
+    inputs = []  # (case, variant, points, probe, frames, ct)
+    for name, pts, ct in clouds_from(args):
+        inputs.append((name, "cloud", load_points(pts), None, None, ct))
+    if args.sweep:
+        if not args.ct:
+            sys.exit("--sweep needs --ct (the CT mesh of the bone to score)")
+        for step in (int(s) for s in args.frame_steps.split(",")):
+            path = sweep_points(args.sweep, step, args.cache, log)
+            points = load_points(path)
+            probe, frames = load_sweep_columns(path, len(points))
+            case = f"{args.sweep.name}/{step}"
+            inputs.append((case, "sweep", points, probe, frames, args.ct))
+            inputs.append((case, "cloud", points, None, None, args.ct))
+    if not inputs:
+        sys.exit("nothing to run: give --cloud, --clouds or --sweep with --ct")
+    done = []
+    if args.json and args.json.exists():
+        done = [json.loads(line) for line in args.json.read_text().splitlines() if line.strip()]
+    rows, truths = [], {}
+    for case, variant, points, probe, frames, ct in inputs:
+        if case not in truths:
+            truths[case] = Truth(ct, points)
+            info = describe(points, truths[case])
+            log(f"{case}: {json.dumps(info)}")
+            score = truths[case].score(points)
+            rows.append({"case": case, "variant": "input", "method": "points", **score,
+                         "points": len(points), "describe": info})
+        if args.describe:
+            continue
+        truth, meshes = truths[case], {}
+        for method in args.methods.split(","):
+            name, _, preset = method.partition("@")
+            preset = preset or args.preset
+            key = {"case": case, "variant": variant, "method": name, "preset": preset, "seed": args.seed,
+                   "iters_override": args.iters, "set": args.set}
+            old = next((r for r in done if all(r.get(k) == v for k, v in key.items())), None)
+            stored = None if args.meshes is None else args.meshes / mesh_name(case, variant, name, preset)
+            if old is not None:
+                rows.append(old)
+                if stored is not None and stored.exists():  # for the pictures
+                    from ultraboneudf import load_mesh
+
+                    meshes[method] = load_mesh(stored)
+                continue
+            row, mesh = run(name, preset, points, truth, args, probe, frames)
+            rows.append({**key, **row})
+            log(json.dumps(rows[-1]))
+            if args.json:
+                args.json.parent.mkdir(parents=True, exist_ok=True)
+                with args.json.open("a") as f:
+                    f.write(json.dumps(rows[-1]) + "\n")
+            meshes[method] = mesh
+            if stored is not None and mesh is not None:
+                args.meshes.mkdir(parents=True, exist_ok=True)
+                mesh.export(stored)
+        if args.pictures and meshes:
+            from ultraboneudf.evaluation.render import render_grid_png
+
+            args.pictures.mkdir(parents=True, exist_ok=True)
+            meshes = {"input points": points_as_mesh(points), **meshes}
+            render_grid_png(args.pictures / f"{case.replace('/', '_')}_{variant}.png", meshes,
+                            truth.samples[:: max(1, len(truth.samples) // 300_000)], views=("front", "right", "top"),
+                            ground_truth=truth.mesh)
+    print_table(rows)
+
+
+def points_as_mesh(points: np.ndarray, size: float = 0.6):
+    """The points drawn as small triangles (``size`` mm), so that the mesh renderer shows a cloud."""
+    import trimesh
+
+    # in the plane normal to (1, 1, 1): seen edge-on from no axis-aligned view
+    corner = size * np.array([[0.0, 0.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, -2.0]]) / [[1.0], [2 ** 0.5], [6 ** 0.5]]
+    vertices = (points[:, None, :] + corner[None]).reshape(-1, 3)
+    return trimesh.Trimesh(vertices, np.arange(len(vertices)).reshape(-1, 3), process=False)
+
+
+def mesh_name(case: str, variant: str, method: str, preset: str) -> str:
+    """The file name of a row's mesh under ``--meshes``."""
+    return f"{case.replace('/', '_')}_{variant}_{method}_{preset}.ply"
+
+
+def print_table(rows: list[dict]) -> None:
+    print("| " + " | ".join(COLUMNS) + " |")
+    print("|" + "---|" * len(COLUMNS))
+    for r in rows:
+        cells = ["" if r.get(c) is None else str(r.get(c)) for c in COLUMNS]
+        if r.get("failed"):
+            cells[4] = "no surface"
+        if r.get("error"):
+            cells[4] = f"not run: {r['error']}"
+        print("| " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main()

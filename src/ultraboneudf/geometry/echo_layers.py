@@ -1,0 +1,190 @@
+"""False echoes that lie in front of the bone, and detached clusters, in a compounded cloud.
+
+Real ultrasound bone clouds hold, besides the bone's own band of echoes, soft tissue that the
+segmentation took for bone: fascia and tendon sheets, clusters and streaks along the beam. Measured
+against CT on real clouds (docs/real_data.md), almost every point more than 5 mm off the bone lies
+*outside* it, between the bone and the probe, and the bone's band is the densest layer of echoes
+along its normal. A local plane fit keeps such sheets, since each is a smooth surface of its own;
+what gives them away is their place: in front of a denser surface. This module finds them from the
+bone's side:
+
+1. **Columns of the dense surface.** Representatives of the points whose local plane was accepted at
+   the first radius and whose neighbourhood is at least half as dense as the cloud's median (one per
+   ``spacing`` voxel) each look along their normal, oriented toward the probe's side, in a
+   cylinder of radius ``lateral``: the points between ``gap`` and ``depth`` in front of it whose
+   layer (±1 mm along the column) holds less than ``1 / ratio`` of the representative's own layer
+   are counted as lying in front of the bone. A point so counted by ``votes`` columns is a false
+   echo. Echoes *behind* a layer are left alone: the two faces of a thin plate of bone (the iliac
+   wing) are each other's back side, and both are bone.
+2. **The probe's side.** With a sweep's probe positions the front of a plane is the side of its
+   probe. A compounded cloud has none; bone, seen from outside, is mostly convex, so the front of a
+   representative's plane is the side away from which its neighbours within ``convexity`` bend (the
+   median height of the representatives around it above its plane is negative), made consistent
+   with its neighbours' choice within ``2 × spacing`` by a majority vote.
+3. **Detached clusters.** Without probe positions, what is left is split into groups linked by
+   gaps under ``link``; groups with fewer points than ``fraction`` of the largest are dropped
+   (clusters of echoes floating in the soft tissue, which no column reached). A sweep's fragments
+   are judged by its frames instead (:mod:`ultraboneudf.sweep.consistency`).
+
+Lengths are in the cloud's unit (the pipeline works in mm, before normalisation).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from .neighbors import kd_tree
+from .surface_fit import LocalPlanes
+from .voxel import voxel_groups
+
+_LAYER_BIN = 1.0      # mm: the column's histogram bin; a layer is three bins (±1.5 mm)
+_OWN_LAYER = 2.0      # mm: the representative's own layer is the densest within this of its plane
+_CHUNK = 256          # representatives per vectorised block (≈ 10⁶ pairs)
+_CONSENSUS_ROUNDS = 3
+_CONVEXITY = 20.0     # mm: the scale at which bone is convex (a femoral shaft's radius is 12-15 mm)
+_DENSE = 0.5          # a representative's neighbourhood holds at least this × the median count
+
+
+def false_echoes(points: np.ndarray, planes: LocalPlanes, view: np.ndarray | None, *, depth: float,
+                 ratio: float, votes: int = 2, fraction: float = 0.0) -> np.ndarray:
+    """(N,) bool: the false echoes among ``points`` (N, 3) with their local ``planes``
+    (:func:`~ultraboneudf.geometry.surface_fit.fit_local_planes`): those in front of a denser layer
+    (``depth`` > 0; counted by ``votes`` columns, ``ratio``: how much denser) and, with ``fraction``
+    > 0, the detached clusters left. ``view`` (N, 3): unit directions probe → point where known (a
+    sweep, whose own frame-to-frame filters judge its fragments: a small bone's steep faces return
+    a few echoes apart from the rest, so detached clusters are judged only without it).
+    The columns' radius and the least height in front are the planes' first radius and three
+    quarters of it (the band of a bone's echoes is about that thick), representatives are spaced at
+    half of it, and clusters are linked across gaps under it."""
+    pts = np.asarray(points, dtype=np.float64)
+    out = np.zeros(len(pts), dtype=bool)
+    radius = planes.base
+    if len(pts) == 0 or radius <= 0:
+        return out
+    if depth > 0:
+        strong = planes.valid & (planes.radius <= radius) & (planes.count >= _DENSE * np.median(planes.count))
+        reps = representatives(pts, strong, radius / 2.0)
+        if len(reps):
+            if view is not None:
+                front = planes.normal[reps] * np.where(
+                    np.einsum("ij,ij->i", planes.normal[reps], view[reps]) > 0, -1.0, 1.0)[:, None]
+            else:
+                front = front_orientation(pts[reps], planes.normal[reps], _CONVEXITY, radius)
+            out = in_front_of_denser_layer(pts, reps, front, depth=depth, lateral=radius,
+                                           gap=0.75 * radius, ratio=ratio) >= votes
+    if fraction > 0 and view is None:
+        rows = np.flatnonzero(~out)
+        out[rows[small_components(pts[rows], radius, fraction)]] = True
+    return out
+
+
+def representatives(points: np.ndarray, strong: np.ndarray, spacing: float) -> np.ndarray:
+    """Indices of one ``strong`` point per occupied voxel of edge ``spacing`` (the first in index
+    order, so the choice is deterministic)."""
+    rows = np.flatnonzero(strong)
+    if len(rows) == 0:
+        return rows
+    groups, _ = voxel_groups(points[rows], spacing, origin=points.min(axis=0) - spacing / 2.0)
+    _, first = np.unique(groups, return_index=True)
+    return rows[np.sort(first)]
+
+
+def front_orientation(points: np.ndarray, normals: np.ndarray, convexity: float, consensus: float
+                      ) -> np.ndarray:
+    """``normals`` (R, 3) of the planes at ``points`` (R, 3), signed to point away from the bone
+    (see the module docstring: convex outward, then a majority vote within ``consensus``). The bend
+    is measured against the points thinned to one per ``consensus`` voxel."""
+    coarse = points[representatives(points, np.ones(len(points), dtype=bool), consensus)]
+    tree = kd_tree(coarse)
+    height = np.zeros(len(points))
+    for start in range(0, len(points), _CHUNK):
+        rows = np.arange(start, min(start + _CHUNK, len(points)))
+        owner, other = _pairs(tree.query_ball_point(points[rows], convexity, workers=-1))
+        t = np.einsum("ij,ij->i", coarse[other] - points[rows][owner], normals[rows][owner])
+        height[rows] = _group_median(t, owner, len(rows))
+    out = normals * np.where(height > 0, -1.0, 1.0)[:, None]
+    owner, other = _pairs(kd_tree(points).query_ball_point(points, consensus, workers=-1))
+    for _ in range(_CONSENSUS_ROUNDS):
+        agree = np.bincount(owner, weights=np.einsum("ij,ij->i", out[owner], out[other]),
+                            minlength=len(points))
+        out = out * np.where(agree < 0, -1.0, 1.0)[:, None]
+    return out
+
+
+def in_front_of_denser_layer(points: np.ndarray, reps: np.ndarray, front: np.ndarray, *, depth: float,
+                             lateral: float, gap: float, ratio: float) -> np.ndarray:
+    """(N,) int: for every point, the number of representatives ``reps`` (R,) whose column (normal
+    ``front`` (R, 3), toward the probe) holds it between ``gap`` and ``depth`` in front, in a layer
+    less than ``1 / ratio`` as dense as the representative's own."""
+    tree = kd_tree(points)
+    edges = np.arange(-_OWN_LAYER - _LAYER_BIN, depth + _LAYER_BIN, _LAYER_BIN)
+    nbins = len(edges) - 1
+    own = (edges[:-1] + _LAYER_BIN / 2 >= -_OWN_LAYER) & (edges[:-1] + _LAYER_BIN / 2 <= _OWN_LAYER)
+    # the column is gathered as balls along its axis, a column radius apart, that cover it
+    steps = np.arange(edges[0], edges[-1] + lateral, lateral)
+    ball = float(np.hypot(lateral, lateral / 2.0))
+    votes = np.zeros(len(points), dtype=np.int64)
+    for start in range(0, len(reps), _CHUNK):
+        block = reps[start:start + _CHUNK]
+        axis = front[start:start + _CHUNK]
+        centres = points[block][:, None, :] + steps[None, :, None] * axis[:, None, :]
+        owner, other = _pairs(tree.query_ball_point(centres.reshape(-1, 3), ball, workers=-1))
+        owner //= len(steps)
+        key = np.unique(owner * len(points) + other)  # a point in two balls of a column counts once
+        owner, other = key // len(points), key % len(points)
+        offset = points[other] - points[block][owner]
+        t = np.einsum("ij,ij->i", offset, axis[owner])
+        across = np.einsum("ij,ij->i", offset, offset) - t * t
+        keep = (across < lateral * lateral) & (t >= edges[0]) & (t < edges[-1])
+        owner, other, t = owner[keep], other[keep], t[keep]
+        bins = np.minimum(((t - edges[0]) / _LAYER_BIN).astype(np.int64), nbins - 1)
+        hist = np.bincount(owner * nbins + bins, minlength=len(block) * nbins).reshape(len(block), nbins)
+        layer = hist.astype(np.float64)
+        layer[:, 1:] += hist[:, :-1]
+        layer[:, :-1] += hist[:, 1:]
+        # the representative's own layer: the densest within ±2 mm of it (it may sit at the band's edge)
+        peak = np.flatnonzero(own)[0] + np.argmax(layer[:, own], axis=1)
+        mine = layer[np.arange(len(block)), peak]
+        thin = layer[owner, bins] * ratio < mine[owner]
+        above = t - (edges[peak] + _LAYER_BIN / 2)[owner]
+        votes += np.bincount(other[(above > gap) & thin], minlength=len(points))
+    return votes
+
+
+def small_components(points: np.ndarray, link: float, fraction: float) -> np.ndarray:
+    """(N,) bool: points of the groups (linked by gaps under ``link``) with fewer points than
+    ``fraction`` of the largest group."""
+    if len(points) == 0 or fraction <= 0:
+        return np.zeros(len(points), dtype=bool)
+    pairs = kd_tree(points).query_pairs(link, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points), len(points)))
+    _, label = connected_components(graph, directed=False)
+    size = np.bincount(label)
+    return size[label] < fraction * size.max()
+
+
+def _pairs(neighbours) -> tuple[np.ndarray, np.ndarray]:
+    """A ball query's lists flattened to (owner, neighbour) index pairs."""
+    counts = np.fromiter((len(n) for n in neighbours), dtype=np.int64, count=len(neighbours))
+    owner = np.repeat(np.arange(len(neighbours)), counts)
+    other = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours]) if counts.sum() else \
+        np.zeros(0, dtype=np.int64)
+    return owner, other
+
+
+def _group_median(values: np.ndarray, group: np.ndarray, n: int) -> np.ndarray:
+    """Median of ``values`` per ``group`` id (0..n-1; pairs sorted by group), 0 for empty groups."""
+    out = np.zeros(n)
+    if len(values) == 0:
+        return out
+    order = np.lexsort((values, group))
+    values, group = values[order], group[order]
+    counts = np.bincount(group, minlength=n)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    has = counts > 0
+    lo = starts[has] + (counts[has] - 1) // 2
+    hi = starts[has] + counts[has] // 2
+    out[has] = 0.5 * (values[lo] + values[hi])
+    return out
