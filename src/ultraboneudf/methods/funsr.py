@@ -54,7 +54,7 @@ def configure(cfg: Config) -> None:
     """FUNSR defaults (§4.1–4.5): no voxel down-sampling, the UltraBoneUDF subset and queries (all
     stored queries kept), SDF network ``[3, 256×8, 1]`` with skip at layer 4 and no absolute value,
     un-squared pull + 0.005·SCC + 0.005·ADL, 15,000 iterations, SDF marching cubes on 256³ over [−1, 1]³.
-    With ``train.budget = "cpu"`` the preset's iterations and batch stay and the mesh is 128³."""
+    With any ``train.budget`` but ``reference`` the preset's iterations and batch stay and the mesh is 128³."""
     cfg.data.voxel_size_mm = 0.0
     cfg.data.anchors = "none"
     cfg.data.drop_to_multiple = 0
@@ -68,13 +68,13 @@ def configure(cfg: Config) -> None:
     cfg.funsr.lambda_scc = 0.005
     cfg.funsr.lambda_adl = 0.005
     cfg.funsr.disc_lr = 1e-3
-    if cfg.train.budget != "cpu":
+    if cfg.train.budget == "reference":
         cfg.train.iters = 15_000
         cfg.train.batch = 5_000
         cfg.train.lr = 1e-3
         cfg.train.warmup = 1_000
     cfg.extract.mode = "sdf_mc"
-    cfg.grid.resolution = 128 if cfg.train.budget == "cpu" else 256
+    cfg.grid.resolution = 256 if cfg.train.budget == "reference" else 128
     cfg.grid.box = "domain"
     cfg.extract.domain = (-1.0, 1.0)
     cfg.extract.batch = 1_000_000
