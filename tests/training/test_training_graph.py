@@ -132,3 +132,20 @@ def test_a_step_that_cannot_be_captured_runs_eagerly_and_says_why(monkeypatch):
     assert failed.step.startswith("eager (the CUDA graph capture failed")
     for key in eager.history:
         np.testing.assert_allclose(failed.history[key], eager.history[key], rtol=1e-3, atol=1e-6)
+
+
+def test_the_sidecar_names_the_schedule_and_how_the_steps_ran():
+    """A run with the GPU budget (here on the CPU, as a GPU session checks accuracy without one)."""
+    import ultraboneudf
+
+    rng = np.random.default_rng(0)
+    theta = rng.uniform(np.pi / 4, 3 * np.pi / 4, 2000)
+    cloud = np.c_[20 * np.cos(theta), rng.uniform(0, 30, 2000), 20 * np.sin(theta)]
+    small = {"train.iters": 40, "train.batch": 16, "extract.max_depth": 5, "model.hidden": (32, 32)}
+    cpu = ultraboneudf.reconstruct(cloud, preset="fast", device="cpu", seed=0, **small)
+    gpu = ultraboneudf.reconstruct(cloud, preset="fast", device="cpu", seed=0, train__budget="gpu", **small)
+    assert cpu.method_info == {"budget": "cpu", "iters": 40, "batch": 16, "lr": 2e-3, "warmup": 400,
+                               "gs_anchors": 128, "os_rows": 0, "train_step": "eager"}
+    assert {k: gpu.method_info[k] for k in ("budget", "iters", "batch", "lr", "gs_anchors")} == \
+        {"budget": "gpu", "iters": 10, "batch": 256, "lr": 4e-3, "gs_anchors": 512}
+    assert len(gpu.history["total"]) == 2 and gpu.sidecar()["config"]["train"]["iters"] == 40

@@ -146,7 +146,7 @@ def fitted_field(net: torch.nn.Module, data: TrainingData, prep_s: float, result
     trained with (``train.budget`` resolved: the sidecar's ``method_info``)."""
     counts = {"surface_points": len(data.surface), "queries": len(data.queries),
               "anchors": len(data.anchors), "parameters": count_parameters(net)}
-    info = {"budget": train_cfg.budget, "iters": train_cfg.iters, "batch": train_cfg.batch,
+    info = {"budget": train_cfg.budget, "iters": train_cfg.iters, "batch": train_cfg.batch, "lr": train_cfg.lr,
             "warmup": train_cfg.warmup, "gs_anchors": loss_cfg.gs_anchors, "os_rows": loss_cfg.os_rows,
             "train_step": result.step}
     return Fitted(field=MLPField(net), counts=counts,
