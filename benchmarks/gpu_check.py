@@ -1,9 +1,10 @@
 """The GPU check, in one call: every number the training-speed targets need, measured on one machine.
 
-    # once, on any machine (no GPU): the bone meshes and the simulated hard femur sweep into .data/
+    # once, on any machine (no GPU): the bone meshes, the real clouds, the simulated hard femur sweep
     python benchmarks/gpu_check.py --prepare .data
     # on the GPU machine (docs/development.md, "Measuring on a GPU", says how to carry trimesh)
-    ULTRABONEUDF_BONES=.data/bones python3 benchmarks/gpu_check.py --cache .data/robust_inputs --out OUT
+    ULTRABONEUDF_BONES=.data/bones python3 benchmarks/gpu_check.py --cache .data/robust_inputs \
+        --real .data/real_clouds --out OUT
     # on a CPU with tiny budgets: that the script runs (the test suite does this)
     python benchmarks/gpu_check.py --device cpu --quick --out /tmp/check
 
@@ -12,27 +13,31 @@ and the tables to ``OUT/gpu_check.md``):
 
 1. ``pytest -m gpu``: the GPU tests (the captured step against the eager step, CUDA against CPU
    extraction), on a CUDA device only;
-2. per preset, end to end with the device's budget (``train.budget = auto``) and the step captured
-   in a CUDA graph: seconds per stage (the sidecar's timings), milliseconds per step, peak GPU
-   memory, CD and HD95 (mm) against the truth, and how the steps ran (``cuda graph``, or eager and
-   why). The default preset (``robust``) on the simulator's hard femur sweep (the robustness
-   benchmark's input: ``bench_robust.py --bones femur --levels hard``), ``fast`` on the open femur
-   (100,000 points); then, on the same prepared data, ``--steps`` steps of the same shape eager
-   (``train.cuda_graph = false``) and captured: milliseconds per step, side by side;
-3. ``reconstruct_many`` of ``--scans`` open-femur scans (area samples drawn with seeds 0, 1, …)
-   against ``reconstruct`` of the first, with the default preset: wall seconds, training seconds;
-4. ``official`` (30,000 steps, the reference's schedule) on the open femur, as in stage 2, with the
+2. the default preset (``robust``) on the simulator's hard femur sweep (the robustness benchmark's
+   input: ``bench_robust.py --bones femur --levels hard``), end to end with the device's budget
+   (``train.budget = auto``) and the step captured in a CUDA graph: seconds per stage (the
+   sidecar's timings), milliseconds per step, peak GPU memory, CD and HD95 (mm) against the truth,
+   and how the steps ran (``cuda graph``, or eager and why); then ``--steps`` steps of the same
+   shape on the same prepared data, eager (``train.cuda_graph = false``) and captured,
+   milliseconds per step side by side; then the same input with the CPU's schedule on this device
+   (``train.budget = cpu``: the accuracy the GPU budget is held to) and each ``--variant``;
+3. ``fast`` on the open femur (100,000 points), as in stage 2;
+4. ``reconstruct_many`` of ``--scans`` open-femur scans (area samples drawn with seeds 0, 1, …)
+   against ``reconstruct`` of the first, with the default preset: wall and training seconds;
+5. ``official`` (30,000 steps, the reference's schedule) on the open femur, as in stage 2, with the
    reference code's time on an H200 beside it; skipped (its time projected from its timed steps)
    when the time left under ``--max-s`` is too short;
-5. with ``--e1``, E1 on the femur: every method of the paper's Table 1 at the default preset
+6. with ``--real DIR``, the real clouds (``NAME_us.npy`` beside ``NAME_ct.stl``), the default preset
+   with the device's budget and with the CPU's, scored against the CT within 2 mm of the input;
+7. with ``--e1``, E1 on the femur: every method of the paper's Table 1 at the default preset
    (``bench dataset openbone``, ``bench run E1``, ``bench report``: ``OUT/e1_report.md``).
 
 ``--variant 'KEY=VALUE ...'`` adds an end-to-end run of the default preset on the hard femur with
 those settings (e.g. ``'train.lr=0.006'``): the GPU budget tuned in the same call.
 
 CD = ½(mean A→B + mean B→A) over ``--samples`` area samples of each surface, HD95 = max of the two
-directed 95th percentiles. ``--quick`` shrinks every budget (steps, points, scans, samples) so that
-the CPU runs it in a minute or two; its numbers mean nothing.
+directed 95th percentiles. ``--quick`` shrinks every budget (steps, points, scans, samples, octree
+depth) so that the CPU runs it in a minute; its numbers mean nothing.
 """
 
 from __future__ import annotations
@@ -58,6 +63,8 @@ TARGET_S = {"robust": 5.0, "fast": 3.0, "official": 60.0}
 CPU_DEFAULT_CD_MM = 0.272
 """The default preset's CD on the hard femur sweep on a CPU (``bench_robust.py --bones femur
 --levels hard --methods ultraboneudf --threads 1``, seed 0, 2-core CPU): the GPU's must be within 5%."""
+REAL_S = 90
+"""Seconds the real-clouds stage needs on a GPU (two clouds, two budgets each), about."""
 STAGES = ("voxel_s", "surface_fit_s", "subset_s", "sigma_s", "queries_s", "anchors_s", "static_nn_s",
           "train_s", "extract_s", "fit_s", "total_s")
 
@@ -219,6 +226,36 @@ def run_pytest(check: Check) -> dict:
                       "summary": lines[-1] if lines else res.stderr[-300:], "seconds": round(time.perf_counter() - t0, 1)})
 
 
+def real_clouds(check: Check, folder: Path, iters: int | None) -> None:
+    """Every ``NAME_us.npy`` of ``folder`` (a compounded ultrasound cloud, mm) beside its
+    ``NAME_ct.stl`` (the CT bone): the default preset with the device's budget and with the CPU's
+    (``train.budget = cpu``), scored as the paper scores real data, against the pseudo ground truth
+    (the CT surface within 2 mm of an input point)."""
+    import numpy as np
+
+    import ultraboneudf
+    from ultraboneudf import load_mesh
+    from ultraboneudf.evaluation import evaluate
+
+    args = check.args
+    overrides = {"train.iters": iters} if iters else {}
+    for cloud in sorted(folder.glob("*_us.npy")):
+        ct = load_mesh(cloud.with_name(cloud.name[:-len("_us.npy")] + "_ct.stl"))
+        points = np.load(cloud)
+        for variant in ((), ("train.budget=cpu",)):
+            check.reset_memory()
+            rec = ultraboneudf.reconstruct(points, device=args.device, seed=args.seed,
+                                           assignments=[*args.set, *variant], **overrides)
+            res = (evaluate(rec.mesh, ct, raw_points=points, pseudo_gt_mm=2.0, samples=args.samples, seed=0)
+                   if rec.mesh is not None else None)
+            check.add({"stage": "real cloud", "case": cloud.name[:-len("_us.npy")], "variant": " ".join(variant) or None,
+                       "points": len(points), "budget": rec.method_info.get("budget"),
+                       "steps": rec.method_info.get("iters"), "train_step": rec.method_info.get("train_step"),
+                       "total_s": round(rec.timings["total_s"], 2), "train_s": round(rec.timings["train_s"], 2),
+                       "peak_gpu_mb": check.peak_mb(), "cd_pgt_mm": None if res is None else round(res.cd_mm, 3),
+                       "hd95_pgt_mm": None if res is None else round(res.hd95_mm, 2)})
+
+
 def e1(check: Check) -> dict:
     """E1 on the femur (``bench dataset openbone``, ``bench run E1``): every method of the paper's
     Table 1 at the default preset, and its CD/HD95 table (``bench report``)."""
@@ -270,14 +307,20 @@ def report(rows: list[dict]) -> str:
                 "graph_peak_gpu_mb", "graph_step"]
         out += ["", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
         out += ["| " + " | ".join("" if r.get(c) is None else str(r.get(c)) for c in cols) + " |" for r in timing]
+    real = [r for r in rows if r["stage"] == "real cloud"]
+    if real:
+        cols = ["case", "variant", "budget", "steps", "train_step", "total_s", "train_s", "peak_gpu_mb",
+                "cd_pgt_mm", "hd95_pgt_mm"]
+        out += ["", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+        out += ["| " + " | ".join("" if r.get(c) is None else str(r.get(c)) for c in cols) + " |" for r in real]
     for r in rows:
         if r["stage"] == "reconstruct_many":
             out += ["", f"reconstruct_many: {r['scans']} scans in {r['many_s']} s (training {r['many_train_s']} s), "
                         f"one scan {r['one_s']} s (training {r['one_train_s']} s): {r['ratio']}× (target ≤ 2×), "
                         f"training {r['train_ratio']}×; {r['train_step']}; CD one {r['cd_one_mm']} mm, "
                         f"batched mean {r['cd_many_mean_mm']} mm"]
-        if r["stage"] == "official projected":
-            out += ["", f"official: not run ({r['why']}); projected {r['projected_s']} s"]
+        if r["stage"] == "skipped":
+            out += ["", f"{r['what']}: not run ({r['why']})"]
         if r["stage"] == "pytest -m gpu":
             out += ["", f"pytest -m gpu: {r['summary']}"]
         if r["stage"] == "E1":
@@ -291,8 +334,11 @@ def prepare(target: Path) -> None:
     (target / "bones").mkdir(parents=True, exist_ok=True)
     for mesh in BONES.glob("*.ply"):
         shutil.copy2(mesh, target / "bones" / mesh.name)
+    real = BONES.parent / "real_clouds"
+    if real.is_dir():  # measured there, never committed
+        shutil.copytree(real, target / "real_clouds", dirs_exist_ok=True)
     _hard_femur(target / "robust_inputs")
-    print(f"prepared {target}: bones/ and robust_inputs/ (carry it to the GPU machine)")
+    print(f"prepared {target}: bones/, robust_inputs/ and real_clouds/ (carry it to the GPU machine)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -306,8 +352,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=1000, help="steps of each eager/captured step timing")
     p.add_argument("--scans", type=int, default=8, help="scans of the reconstruct_many stage")
     p.add_argument("--official-iters", type=int, default=None, help="the official preset's steps (30,000)")
-    p.add_argument("--max-s", type=float, default=450.0,
-                   help="skip the official run when its projected time would end past this many seconds")
+    p.add_argument("--real", type=Path, metavar="DIR", help="real clouds (NAME_us.npy beside NAME_ct.stl)")
+    p.add_argument("--max-s", type=float, default=420.0,
+                   help="skip the official run (and the real clouds) when they would end past this many seconds")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="for every run")
     p.add_argument("--variant", action="append", default=[], metavar="'KEY=VALUE ...'",
                    help="one more end-to-end run of the default preset on the hard femur with these "
@@ -340,7 +387,8 @@ def main(argv: list[str] | None = None) -> int:
     points, probe, truth, frames = _hard_femur(args.cache)
     _, rec = end_to_end(check, "robust", "hard femur sweep", points, truth, probe, frames, iters)
     step_timing(check, "robust", rec.surface, args.steps)
-    for variant in args.variant:
+    # the CPU default's schedule on this device: what the GPU budget's accuracy is held against
+    for variant in ("train.budget=cpu", *args.variant):
         end_to_end(check, "robust", "hard femur sweep", points, truth, probe, frames, iters, tuple(variant.split()))
     open_truth = _open_femur()
     femur = _samples(open_truth, open_points, 0)
@@ -352,13 +400,17 @@ def main(argv: list[str] | None = None) -> int:
 
     fitted = pipeline.fit(femur, "official", device=args.device, seed=args.seed, assignments=args.set, iters=1)
     timing = step_timing(check, "official", fitted, args.steps)
-    steps = args.official_iters or 30_000
-    projected = timing["graph_ms"] * steps / 1e3 + 30.0
+    projected = timing["graph_ms"] * (args.official_iters or 30_000) / 1e3 + 30.0
     if projected < check.left_s():
         end_to_end(check, "official", "open femur", femur, open_truth, iters=args.official_iters)
     else:
-        check.add({"stage": "official projected", "projected_s": round(projected),
-                   "why": f"{check.left_s():.0f} s left of --max-s {args.max_s:g}"})
+        check.add({"stage": "skipped", "what": "official end to end",
+                   "why": f"projected {projected:.0f} s, {check.left_s():.0f} s left of --max-s {args.max_s:g}"})
+    if args.real and check.left_s() > REAL_S:
+        real_clouds(check, args.real, iters)
+    elif args.real:
+        check.add({"stage": "skipped", "what": "real clouds",
+                   "why": f"{check.left_s():.0f} s left of --max-s {args.max_s:g}, about {REAL_S} s needed"})
     if args.e1:
         e1(check)
     text = report(check.rows)

@@ -111,10 +111,9 @@ class Replayer:
     call on, with the reason in :attr:`failed`."""
 
     def __init__(self, fn: Callable[[], dict[str, torch.Tensor]], device: torch.device,
-                 generators: list[torch.Generator], capture: bool = True, pool=None) -> None:
+                 generators: list[torch.Generator], capture: bool = True) -> None:
         self.fn, self.device, self.generators = fn, device, generators
         self.capture = capture and device.type == "cuda"
-        self.pool = pool
         self.calls = 0
         self.graph = None
         self.out: dict[str, torch.Tensor] = {}
@@ -138,23 +137,24 @@ class Replayer:
         return self.out
 
     def _eager(self) -> dict[str, torch.Tensor]:
-        if self.stream is None:
-            return self.fn()
-        main = torch.cuda.current_stream(self.device)
-        self.stream.wait_stream(main)
-        with torch.cuda.stream(self.stream), warnings.catch_warnings():
+        with warnings.catch_warnings():
             # Adam built capturable warns when it steps outside a capture; these steps are meant to
             warnings.filterwarnings("ignore", message=".*capturable.*")
-            out = self.fn()
-        main.wait_stream(self.stream)
-        return out
+            if self.stream is None:
+                return self.fn()
+            main = torch.cuda.current_stream(self.device)
+            self.stream.wait_stream(main)
+            with torch.cuda.stream(self.stream):
+                out = self.fn()
+            main.wait_stream(self.stream)
+            return out
 
     def _capture(self) -> None:
         self._states = [g.get_state() for g in self.generators]
         graph = torch.cuda.CUDAGraph()
         for g in self.generators:
             graph.register_generator_state(g)
-        with torch.cuda.graph(graph, pool=self.pool):
+        with torch.cuda.graph(graph):
             out = self.fn()
         self.graph, self.out = graph, out
 

@@ -9,6 +9,10 @@ scans' losses: K scans trained together equal the K runs alone, step for step (t
 Everything stays on the training device: the batch draw, the dynamic nearest neighbour (chunked
 brute force on a GPU), the loss and the optimiser step. The only host reads are the progress
 ticks and the loss history, which is kept as device tensors and read once at the end.
+
+On a CUDA device the step runs as one static-shape function (:class:`_StaticStep`), captured in a
+CUDA graph after a few eager steps and replayed (:mod:`.graph`); the CPU runs the eager loop, which
+the static step equals draw for draw and bit for bit (tested).
 """
 
 from __future__ import annotations
