@@ -181,6 +181,7 @@ def test_the_gpu_check_runs_on_the_cpu_in_quick_mode(tmp_path):
                          capture_output=True, text=True, timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
     rows = json.loads((out / "gpu_check.json").read_text())
+    assert not [r for r in rows if r["stage"] == "error"], (out / "errors.txt").read_text()
     e2e = [r for r in rows if r["stage"] == "end to end"]
     assert [(r["preset"], r["variant"]) for r in e2e] == [
         ("robust", None), ("robust", "train.budget=cpu"), ("robust", "train.lr=0.004"), ("fast", None),
