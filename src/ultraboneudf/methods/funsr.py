@@ -96,6 +96,8 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.funsr.disc_lr, betas=(0.9, 0.999), eps=1e-8)
     lc, iters = cfg.loss, cfg.train.iters
     net.train()
+    if device.type == "cuda":
+        progress.log("training: eager steps (FUNSR's own loop, with its discriminator, is not captured)")
     # the discriminator's sigmoid saturates, and about 40% of its Adam second moments sink below
     # float32's normal range within 150 steps: unflushed, a CPU step takes 8 times as long
     with cpu_threads(cfg.train.threads), flush_denormals(device), progress.stage("training", iters) as advance:
