@@ -43,11 +43,11 @@ class LrSchedule:
     float64 on the CPU (the same rates as the eager loop's floats, to the bit) and float32 on CUDA
     (what the fused Adam kernel reads)."""
 
-    def __init__(self, lr0: float, warmup: int, total: int, device: torch.device, start: int = 0) -> None:
+    def __init__(self, lr0: float, warmup: int, total: int, device: torch.device) -> None:
         dtype = torch.float64 if device.type == "cpu" else torch.float32
         rates = [learning_rate(i, lr0, warmup, total) for i in range(total)]
         self.table = torch.tensor(rates, dtype=dtype).to(device)
-        self.step = torch.full((1,), start, dtype=torch.int64, device=device)
+        self.step = torch.zeros(1, dtype=torch.int64, device=device)
         self.lr = torch.zeros(1, dtype=dtype, device=device)
 
     def advance(self) -> None:
