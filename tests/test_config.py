@@ -181,3 +181,22 @@ def test_update_docs_rewrites_a_block_with_the_fields_a_method_changes(tmp_path,
     assert "train.budget" not in text                       # unchanged by the method: not listed
     assert main(["config", "--update-docs", str(page)]) == 0
     assert "up to date" in capsys.readouterr().out
+
+def test_the_budget_follows_the_device_unless_set():
+    from ultraboneudf.config import resolve_budget, training_schedule
+
+    cfg = preset("robust")
+    assert cfg.train.budget == "auto" and preset("official").train.budget == "reference"
+    assert resolve_budget("auto", "cpu") == "cpu" and resolve_budget("auto", "cuda") == "gpu"
+    assert resolve_budget("cpu", "cuda") == "cpu" and resolve_budget("gpu", "cpu") == "gpu"
+    # the CPU trains the preset's own schedule (the sections themselves, budget resolved)
+    loss, train = training_schedule(cfg.loss, cfg.train, "cpu")
+    assert loss is cfg.loss and (train.iters, train.batch, train.lr, train.budget) == (10_000, 250, 2e-3, "cpu")
+    # a GPU: a quarter of the steps and of the warm-up, 16 times the queries, twice the rate, and as
+    # many anchors and surface rows over the run
+    loss, train = training_schedule(cfg.loss, cfg.train, "cuda")
+    assert (train.budget, train.iters, train.batch, train.warmup, train.lr) == ("gpu", 2_500, 4_000, 100, 4e-3)
+    assert (loss.gs_anchors, loss.os_rows) == (4 * cfg.loss.gs_anchors, 4 * cfg.loss.os_rows)
+    assert cfg.train.iters == 10_000 and cfg.loss.os_rows == 256          # the config is not changed
+    official = preset("official")
+    assert training_schedule(official.loss, official.train, "cuda") == (official.loss, official.train)

@@ -306,12 +306,58 @@ def test_shifted_domain():
     assert radial.max() < 0.1 * (1.0 / 64)
 
 
+def _vertex_gap(a, b) -> float:
+    """Largest distance from a vertex of either mesh to the nearest vertex of the other."""
+    from scipy.spatial import cKDTree
+
+    return max(cKDTree(a.vertices).query(b.vertices)[0].max(), cKDTree(b.vertices).query(a.vertices)[0].max())
+
+
+# Vertices of the same field extracted on two devices agree to this fraction of the leaf edge. Both
+# compute in float64, but their kernels round differently: CUDA's reductions and batched matrix
+# products sum in another order, and its batched eigen-solver is another algorithm than LAPACK's,
+# so field values, gradients and the QEF's normal equations differ in the last bits (~1e-16
+# relative). The vertex solve is well conditioned at that scale: a relative error δ of the field
+# moves the vertices by about 2δ leaf edges (measured below), so rounding moves them ~1e-16 of a
+# leaf; 1e-6 leaves a wide margin for the devices' other kernels and is still far below any
+# geometric difference.
+DEVICE_TOLERANCE = 1e-6
+
+
+class RoundedSphere(SphereUDF):
+    """The sphere UDF with its values and gradients off by a relative ``rel`` (a rounding error
+    larger than float64's), varying from sample to sample."""
+
+    def __init__(self, rel: float):
+        super().__init__(0.3)
+        self.rel = rel
+
+    def _value_and_grad(self, x):
+        u, g = super()._value_and_grad(x)
+        n1 = torch.sin(1e4 * (x @ torch.tensor([1.0, 1.7, 2.3], dtype=x.dtype)))
+        n2 = torch.cos(1e4 * (x @ torch.tensor([2.9, 0.3, 1.1], dtype=x.dtype)))
+        return u * (1 + self.rel * n1), g * (1 + self.rel * n2[:, None]) + self.rel * n1[:, None]
+
+    def _value(self, x):
+        return self._value_and_grad(x)[0]
+
+
+def test_rounding_errors_of_the_field_move_the_vertices_far_less_than_the_device_tolerance():
+    cfg = UBU(max_depth=6)
+    exact = dualmesh_udf(SphereUDF(0.3), cfg)
+    rounded = dualmesh_udf(RoundedSphere(1e-12), cfg)   # 10,000 times float64's rounding
+    assert len(rounded.vertices) == len(exact.vertices) and len(rounded.faces) == len(exact.faces)
+    assert _vertex_gap(exact, rounded) < 1e-10 * (2.0 / 2 ** 6) < DEVICE_TOLERANCE * (2.0 / 2 ** 6)
+
+
 @pytest.mark.gpu
 def test_cuda_matches_cpu():
+    """Same counts, and every vertex within :data:`DEVICE_TOLERANCE` leaf edges of one of the other
+    device's. Matched to the nearest vertex, not compared in sorted order: the sphere's mirror-image
+    vertices share their x coordinate to the bit on one device and not on the other, which reorders
+    a lexicographic sort."""
     cfg = UBU(max_depth=7)
     cpu = dualmesh_udf(SphereUDF(0.3), cfg)
     gpu = dualmesh_udf(SphereUDF(0.3, device="cuda"), cfg)
     assert len(gpu.faces) == len(cpu.faces) and len(gpu.vertices) == len(cpu.vertices)
-    a, b = (np.sort(np.ascontiguousarray(m.vertices).view([("", float)] * 3), axis=0).view(float)
-            for m in (cpu, gpu))
-    assert np.allclose(a, b, atol=1e-9)
+    assert _vertex_gap(cpu, gpu) < DEVICE_TOLERANCE * (2.0 / 2 ** cfg.max_depth)

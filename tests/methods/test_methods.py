@@ -174,7 +174,7 @@ def test_the_budget_field_not_the_preset_name_sets_the_baselines_schedule():
     from ultraboneudf.pipeline import configure
 
     cpu, _ = configure("robust", "capudf")
-    assert cpu.train.budget == "cpu" and cpu.train.iters == preset("robust").train.iters
+    assert cpu.train.budget == "auto" and cpu.train.iters == preset("robust").train.iters
     assert cpu.capudf.expand_at == 2 * cpu.train.iters // 3 and cpu.grid.resolution == 128
     # the same preset asked for the published schedule (the method reads the field it is given)
     cfg = preset("robust")

@@ -31,9 +31,9 @@ MIN_POINTS = 60
 
 
 def configure(cfg: Config) -> None:
-    """CAP-UDF ``base.conf`` defaults (§3.2–3.5). With ``train.budget = "cpu"`` the preset's
-    iterations and batch are kept and the expansion happens after two thirds of them (the reference
-    ratio 40k / 60k)."""
+    """CAP-UDF ``base.conf`` defaults (§3.2–3.5). With any ``train.budget`` but ``reference`` the
+    preset's iterations and batch are kept and the expansion happens after two thirds of them (the
+    reference ratio 40k / 60k)."""
     cfg.model.hidden = (256,) * 8
     cfg.model.skip = (4,)
     cfg.model.abs_output = True
@@ -43,7 +43,7 @@ def configure(cfg: Config) -> None:
     cfg.data.queries = "capudf"
     cfg.data.anchors = "none"
     cfg.data.grid_queries = 0
-    if cfg.train.budget == "cpu":
+    if cfg.train.budget != "reference":
         cfg.capudf.expand_at = (2 * cfg.train.iters) // 3
         cfg.capudf.expand_batch = 4 * cfg.train.batch
         cfg.capudf.expand_candidates = 200_000
@@ -177,4 +177,4 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     counts = {"surface_points": len(p), "queries": len(queries), "anchors": 0,
               "parameters": count_parameters(net), "expanded_points": stats.get("added", 0)}
     return Fitted(field=MLPField(net), counts=counts, timings={"preprocess_s": prep_s, "train_s": result.seconds},
-                  history=result.history, surface=p)
+                  history=result.history, surface=p, info={"train_step": result.step})

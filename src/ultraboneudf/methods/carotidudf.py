@@ -41,10 +41,11 @@ def _pull_only(cfg: Config) -> None:
 
 
 def _udf2sdf_extraction(cfg: Config) -> None:
-    """§5.4: ``normal-sign`` marching cubes on 256³ points over [−1, 1]³ (128³ with ``train.budget = "cpu"``)."""
+    """§5.4: ``normal-sign`` marching cubes on 256³ points over [−1, 1]³ (128³ with any
+    ``train.budget`` but ``reference``)."""
     cfg.extract.mode = "udf2sdf"
     cfg.grid.udf2sdf = "normal-sign"
-    cfg.grid.resolution = 128 if cfg.train.budget == "cpu" else 256
+    cfg.grid.resolution = 256 if cfg.train.budget == "reference" else 128
     cfg.grid.box = "domain"
     cfg.extract.domain = (-1.0, 1.0)
     cfg.extract.batch = 1_000_000
@@ -86,4 +87,4 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     counts = {"surface_points": len(data.surface), "queries": len(data.queries),
               "anchors": len(data.anchors), "parameters": count_parameters(net)}
     return Fitted(field=MLPField(net), counts=counts, timings={"preprocess_s": prep_s, "train_s": result.seconds},
-                  history=result.history, surface=surface, normals=normals)
+                  history=result.history, surface=surface, normals=normals, info={"train_step": result.step})

@@ -9,7 +9,7 @@ import time
 import numpy as np
 import torch
 
-from ..config import Config, check_choices, model_widths
+from ..config import Config, LossConfig, TrainConfig, check_choices, model_widths, training_schedule
 from ..errors import InputError
 from ..fields.mlp import DistanceMLP, MLPField, count_parameters
 from ..geometry.support import DataSurface
@@ -17,7 +17,7 @@ from ..geometry.surface_fit import LocalPlanes
 from ..geometry.queries import anchors, gaussian_queries, grid_queries, query_spread, surface_subset_index
 from ..checkpoints import Checkpoint
 from ..progress import QUIET, Progress
-from ..training import TrainingData, train
+from ..training import TrainingData, TrainResult, train
 from .base import Fitted
 
 
@@ -113,8 +113,9 @@ def fit(points: np.ndarray, cfg: Config, device: torch.device, seed: int,
     data = prepare(points, cfg, device, seed, progress, timings=stages, planes=planes)
     prep_s = time.perf_counter() - t0
     net = build_network(cfg, seed, device)
-    result = train(net, data, cfg.loss, cfg.train, seed, progress, checkpoint=checkpoint)
-    return fitted_field(net, data, prep_s, result.seconds, stages, result.history)
+    loss_cfg, train_cfg = training_schedule(cfg.loss, cfg.train, device.type)
+    result = train(net, data, loss_cfg, train_cfg, seed, progress, checkpoint=checkpoint)
+    return fitted_field(net, data, prep_s, result, stages, loss_cfg, train_cfg)
 
 
 def fit_many(clouds: list[np.ndarray], cfg: Config, device: torch.device, seed: int,
@@ -133,15 +134,21 @@ def fit_many(clouds: list[np.ndarray], cfg: Config, device: torch.device, seed: 
         prep.append(time.perf_counter() - t0)
         stages.append(stage)
     nets = [build_network(cfg, seed, device) for _ in clouds]
-    trained, results = train_many(nets, datas, cfg.loss, cfg.train, [seed] * len(clouds), progress)
-    return [fitted_field(net, data, p, r.seconds, st, r.history)
+    loss_cfg, train_cfg = training_schedule(cfg.loss, cfg.train, device.type)
+    trained, results = train_many(nets, datas, loss_cfg, train_cfg, [seed] * len(clouds), progress)
+    return [fitted_field(net, data, p, r, st, loss_cfg, train_cfg)
             for net, data, p, r, st in zip(trained, datas, prep, results, stages)]
 
 
-def fitted_field(net: torch.nn.Module, data: TrainingData, prep_s: float, train_s: float,
-                 stages: dict[str, float], history: dict[str, list[float]]) -> Fitted:
-    """The :class:`Fitted` of a trained network: its field, counts and timings."""
+def fitted_field(net: torch.nn.Module, data: TrainingData, prep_s: float, result: TrainResult,
+                 stages: dict[str, float], loss_cfg: LossConfig, train_cfg: TrainConfig) -> Fitted:
+    """The :class:`Fitted` of a trained network: its field, counts, timings and the schedule it
+    trained with (``train.budget`` resolved: the sidecar's ``method_info``)."""
     counts = {"surface_points": len(data.surface), "queries": len(data.queries),
               "anchors": len(data.anchors), "parameters": count_parameters(net)}
+    info = {"budget": train_cfg.budget, "iters": train_cfg.iters, "batch": train_cfg.batch, "lr": train_cfg.lr,
+            "warmup": train_cfg.warmup, "gs_anchors": loss_cfg.gs_anchors, "os_rows": loss_cfg.os_rows,
+            "train_step": result.step}
     return Fitted(field=MLPField(net), counts=counts,
-                  timings={"preprocess_s": prep_s, "train_s": train_s, **stages}, history=history)
+                  timings={"preprocess_s": prep_s, "train_s": result.seconds, **stages}, history=result.history,
+                  info=info)

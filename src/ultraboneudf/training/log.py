@@ -36,10 +36,14 @@ class LoopLog:
         self._steady: float | None = None      # when the first (allocating) steps were over
         self._estimated = progress.quiet
 
+    def records(self, i: int) -> bool:
+        """Whether the loss terms of the 0-based step ``i`` go into the history."""
+        return i % self.log_every == 0 or i == self.iters - 1
+
     def step(self, i: int, terms: dict[str, torch.Tensor]) -> None:
         """Record after the 0-based step ``i``; stop (:class:`InputError`) when the loss is no longer
         finite (checked at the recorded steps only: one host read every ``log_every`` steps)."""
-        if i % self.log_every == 0 or i == self.iters - 1:
+        if self.records(i):
             for key, value in terms.items():
                 self.terms.setdefault(key, []).append(value.detach())
             if not bool(torch.isfinite(terms["total"]).all()):

@@ -9,6 +9,10 @@ scans' losses: K scans trained together equal the K runs alone, step for step (t
 Everything stays on the training device: the batch draw, the dynamic nearest neighbour (chunked
 brute force on a GPU), the loss and the optimiser step. The only host reads are the progress
 ticks and the loss history, which is kept as device tensors and read once at the end.
+
+On a CUDA device the step runs as one static-shape function (:class:`_StaticStep`), captured in a
+CUDA graph after a few eager steps and replayed (:mod:`.graph`); the CPU runs the eager loop, which
+the static step equals draw for draw and bit for bit (tested).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from ..progress import QUIET, Progress
 from .log import LoopLog
 from .losses import (consistency_chamfer_loss, eikonal_loss, far_field_loss, global_shape_loss,
                      on_surface_loss, pull_loss, tangent_loss, tangent_residual, warm_start_loss)
+from .graph import LrSchedule, Replayer, device_draw, graph_capture_blocker
 from .samplers import SAMPLERS, learning_rate
 from .scans import OneScan, StackedMLP
 
@@ -61,12 +66,18 @@ def flush_denormals(device: torch.device):
             torch.set_flush_denormal(False)
 
 
-def make_optimizer(params, device: torch.device, fused: bool) -> torch.optim.Adam:
+def make_optimizer(params, device: torch.device, fused: bool,
+                   lr: float | torch.Tensor = 0.0) -> torch.optim.Adam:
     """Adam with the reference hyper-parameters (§1.7). ``fused`` uses PyTorch's single-kernel
-    implementation where the device has one (CPU and CUDA): the same update, fewer operations."""
+    implementation where the device has one (CPU and CUDA): the same update, fewer operations.
+    ``lr``: the learning rate, a float the loop sets each step, or a tensor on the device that the
+    static step updates in place (fused then, and capturable on CUDA: its step count stays on the
+    device, so the update can be captured in a CUDA graph)."""
     fused = fused and device.type in ("cpu", "cuda")
-    return torch.optim.Adam(params, lr=0.0, betas=(0.9, 0.999), eps=1e-8, weight_decay=0.0,
-                            **({"fused": True} if fused else {}))
+    extra = {"fused": True} if fused else {}
+    if isinstance(lr, torch.Tensor) and device.type == "cuda":
+        extra["capturable"] = True
+    return torch.optim.Adam(params, lr=lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=0.0, **extra)
 
 
 @dataclass
@@ -104,6 +115,9 @@ class TrainResult:
     seconds: float
     iterations: int
     history: dict[str, list[float]] = field(default_factory=dict)
+    step: str = "eager"
+    """How the steps ran: ``eager``, ``cuda graph`` (captured after a few eager steps and
+    replayed), or ``eager (why no graph)`` on a CUDA device."""
 
 
 class _Rows:
@@ -211,7 +225,8 @@ def loss_terms(model: nn.Module, datas: Sequence[TrainingData], step: StepDraw, 
 
 def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: TrainConfig,
           seed: int, progress: Progress = QUIET, log_every: int = 100,
-          expansion: Expansion | None = None, checkpoint: Checkpoint | None = None) -> TrainResult:
+          expansion: Expansion | None = None, checkpoint: Checkpoint | None = None,
+          static: bool | None = None) -> TrainResult:
     """Optimise ``net`` (any network of (M, 3) → (M,), skip connections included) in place on
     ``data`` for ``train_cfg.iters`` iterations (Adam, §1.7): the loop of :func:`train_many` with
     one scan.
@@ -220,17 +235,24 @@ def train(net: nn.Module, data: TrainingData, loss_cfg: LossConfig, train_cfg: T
 
     ``checkpoint``: save the loop's state every ``checkpoint.every`` steps, and with
     ``checkpoint.resume`` start from the saved state (:mod:`~ultraboneudf.checkpoints`): the
-    result equals the uninterrupted run's."""
+    result equals the uninterrupted run's.
+
+    ``static``: run the static-shape step (:mod:`.graph`; on CUDA captured in a CUDA graph);
+    ``None``: on a CUDA device where it can (``train.cuda_graph``, no expansion or checkpoint),
+    else the eager loop. On the CPU the static step runs eagerly and equals the eager loop."""
     model = OneScan(net, explicit=train_cfg.step == "optimised")
-    return _loop(model, [data], loss_cfg, train_cfg, [seed], progress, log_every, expansion, checkpoint)[0]
+    return _loop(model, [data], loss_cfg, train_cfg, [seed], progress, log_every, expansion, checkpoint,
+                 static)[0]
 
 
 def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: LossConfig,
                train_cfg: TrainConfig, seeds: list[int], progress: Progress = QUIET,
-               log_every: int = 100) -> tuple[list[DistanceMLP], list[TrainResult]]:
+               log_every: int = 100, static: bool | None = None
+               ) -> tuple[list[DistanceMLP], list[TrainResult]]:
     """Train ``nets[k]`` on ``datas[k]`` with seed ``seeds[k]``, all K at once, their weights stacked
     (:class:`~.scans.StackedMLP`: the same widths, no skip connections). Step for step the result
-    equals K runs of :func:`train` (see the module docstring).
+    equals K runs of :func:`train` (see the module docstring); on CUDA the K scans' step is one
+    CUDA graph (``static`` as in :func:`train`).
 
     ``train_cfg.step``: ``optimised`` (hand-written input gradient, fused Adam) or ``plain``
     (autograd double backward, PyTorch's default Adam); both compute the same losses and updates.
@@ -245,26 +267,48 @@ def train_many(nets: list[DistanceMLP], datas: list[TrainingData], loss_cfg: Los
     if not (len(nets) == len(datas) == len(seeds) >= 1):
         raise ValueError("need one network, one data set and one seed per scan")
     model = StackedMLP(nets, explicit=train_cfg.step == "optimised").to(datas[0].queries.device)
-    results = _loop(model, datas, loss_cfg, train_cfg, seeds, progress, log_every)
+    results = _loop(model, datas, loss_cfg, train_cfg, seeds, progress, log_every, static=static)
     return model.networks(), results
+
+
+def _eager_reason(device: torch.device, train_cfg: TrainConfig, expansion: Expansion | None,
+                  checkpoint: Checkpoint | None) -> str | None:
+    """Why the steps of this run cannot be captured in a CUDA graph, or ``None`` when they can."""
+    if not train_cfg.cuda_graph:
+        return "train.cuda_graph is off"
+    if train_cfg.step != "optimised":
+        return "train.step=plain steps eagerly"
+    if expansion is not None and expansion.at > 0:
+        return "CAP-UDF's expansion changes the batch during the run"
+    if checkpoint is not None:
+        return "checkpoints are saved between eager steps"
+    return graph_capture_blocker(device)
 
 
 def _loop(model: nn.Module, datas: list[TrainingData], loss_cfg: LossConfig, train_cfg: TrainConfig,
           seeds: list[int], progress: Progress, log_every: int,
-          expansion: Expansion | None = None, checkpoint: Checkpoint | None = None) -> list[TrainResult]:
+          expansion: Expansion | None = None, checkpoint: Checkpoint | None = None,
+          static: bool | None = None) -> list[TrainResult]:
     """The loop itself, for the K fields of ``model`` (:mod:`.scans`); ``expansion`` and
-    ``checkpoint`` with one scan only (:func:`train`)."""
+    ``checkpoint`` with one scan only (:func:`train`); ``static`` as in :func:`train`."""
     check_choices(train_cfg)
     check_choices(loss_cfg)
     if (expansion is not None or checkpoint is not None) and not isinstance(model, OneScan):
         raise ValueError("CAP-UDF's expansion and checkpoints train one scan at a time")
     device = datas[0].queries.device
+    reason = _eager_reason(device, train_cfg, expansion, checkpoint)
+    if static is None:
+        static = reason is None
+    elif static and (expansion is not None and expansion.at > 0 or checkpoint is not None):
+        raise ValueError("the static step runs without CAP-UDF's expansion and checkpoints")
     generators = [torch.Generator(device=device).manual_seed(s) for s in seeds]
     make_sampler = SAMPLERS[train_cfg.sampler]
     samplers = [make_sampler(len(d.queries), train_cfg.batch, gen, device) for d, gen in zip(datas, generators)]
     indices = [NearestIndex(d.surface) for d in datas]
-    opt = make_optimizer(model.parameters(), device, fused=train_cfg.step == "optimised")
     iters = train_cfg.iters
+    schedule = LrSchedule(train_cfg.lr, train_cfg.warmup, iters, device) if static else None
+    opt = make_optimizer(model.parameters(), device, fused=train_cfg.step == "optimised",
+                         lr=schedule.lr if static else 0.0)
     warm_steps = round(loss_cfg.warm_start * iters)
     if (warm_steps > 0 or loss_cfg.lambda_far) and any(d.static_distance is None for d in datas):
         raise ValueError("loss.warm_start and loss.lambda_far need the static distances in the "
@@ -294,6 +338,10 @@ def _loop(model: nn.Module, datas: list[TrainingData], loss_cfg: LossConfig, tra
         progress.log(f"resumed from {checkpoint.path} at step {start:,} of {iters:,}")
     model.train()
     threads = train_cfg.threads if device.type == "cpu" else 0
+    mode = "eager"
+    if device.type == "cuda" and not static and reason is not None:
+        mode = f"eager ({reason})"
+        progress.log(f"training: eager steps ({reason})")
     with cpu_threads(threads), progress.stage("training", iters, start=start) as advance:
         # the pace of the last phase: after the warm start, and after CAP-UDF's larger second batch
         steady = max(warm_steps, expansion.at if expands else 0, start)
@@ -301,37 +349,103 @@ def _loop(model: nn.Module, datas: list[TrainingData], loss_cfg: LossConfig, tra
                       steady_from=steady)
         if resumed is not None:
             log.resume(resumed["history"], float(resumed["seconds"]))
-        for i in range(start, iters):
-            if expands and i == expansion.at:
-                net.eval()
-                data.static_targets = expansion.targets(net, data)
-                net.train()
-                samplers[0] = make_sampler(len(data.queries), expansion.batch, generators[0], device)
-            for group in opt.param_groups:
-                group["lr"] = learning_rate(i, train_cfg.lr, train_cfg.warmup, iters)
-            # each scan's draws in the order of a run of it alone: batch, anchors, surface rows
-            step = StepDraw([s() for s in samplers])
-            if anchors is not None:
-                step.anchor_rows = anchors.draw(generators)
-            if surface is not None:
-                step.surface_rows = surface.draw(generators)
-            opt.zero_grad(set_to_none=True)
-            terms = loss_terms(model, datas, step, loss_cfg, indices,
-                               anchors if loss_cfg.lambda_gs else None, surface, warm=i < warm_steps)
-            terms["total"].sum().backward()
-            opt.step()
-            log.step(i, terms)
-            if checkpoint is not None and checkpoint.every and (i + 1) % checkpoint.every == 0 \
-                    and i + 1 < iters:
-                checkpoints.save(checkpoint.path, {
-                    "fingerprint": stamp, "step": i + 1, "net": net.state_dict(),
-                    "optimizer": opt.state_dict(), "generator": generators[0].get_state(),
-                    "sampler": samplers[0].state(), "history": log.history_so_far(),
-                    "seconds": log.elapsed(),
-                    **({"static_targets": data.static_targets.cpu()}
-                       if expands and i + 1 > expansion.at else {})})
+        if static:
+            step = _StaticStep(model, datas, loss_cfg, indices, anchors, surface, samplers, generators, opt,
+                               schedule)
+            mode = _static_loop(step, iters, warm_steps, device, log, generators, progress,
+                                capture=reason is None)
+        else:
+            for i in range(start, iters):
+                if expands and i == expansion.at:
+                    net.eval()
+                    data.static_targets = expansion.targets(net, data)
+                    net.train()
+                    samplers[0] = make_sampler(len(data.queries), expansion.batch, generators[0], device)
+                for group in opt.param_groups:
+                    group["lr"] = learning_rate(i, train_cfg.lr, train_cfg.warmup, iters)
+                # each scan's draws in the order of a run of it alone: batch, anchors, surface rows
+                step = StepDraw([s() for s in samplers])
+                if anchors is not None:
+                    step.anchor_rows = anchors.draw(generators)
+                if surface is not None:
+                    step.surface_rows = surface.draw(generators)
+                opt.zero_grad(set_to_none=True)
+                terms = loss_terms(model, datas, step, loss_cfg, indices,
+                                   anchors if loss_cfg.lambda_gs else None, surface, warm=i < warm_steps)
+                terms["total"].sum().backward()
+                opt.step()
+                log.step(i, terms)
+                if checkpoint is not None and checkpoint.every and (i + 1) % checkpoint.every == 0 \
+                        and i + 1 < iters:
+                    checkpoints.save(checkpoint.path, {
+                        "fingerprint": stamp, "step": i + 1, "net": net.state_dict(),
+                        "optimizer": opt.state_dict(), "generator": generators[0].get_state(),
+                        "sampler": samplers[0].state(), "history": log.history_so_far(),
+                        "seconds": log.elapsed(),
+                        **({"static_targets": data.static_targets.cpu()}
+                           if expands and i + 1 > expansion.at else {})})
     seconds, history = log.finish()
     model.eval()
     return [TrainResult(seconds=seconds, iterations=iters,
-                        history={key: [row[k] for row in values] for key, values in history.items()})
+                        history={key: [row[k] for row in values] for key, values in history.items()}, step=mode)
             for k in range(len(datas))]
+
+
+class _StaticStep:
+    """One training step of fixed shapes with all its state on the device (:mod:`.graph`): the
+    eager loop's step, draw for draw and operation for operation, with the learning rate from
+    ``schedule`` and the epoch sampler's permutation drawn between steps (:meth:`before`)."""
+
+    def __init__(self, model: nn.Module, datas: list[TrainingData], loss_cfg: LossConfig,
+                 indices: list[NearestIndex], anchors: _Rows | None, surface: _Rows | None,
+                 samplers: list, generators: list[torch.Generator], opt: torch.optim.Optimizer,
+                 schedule: LrSchedule) -> None:
+        self.model, self.datas, self.loss_cfg, self.indices = model, datas, loss_cfg, indices
+        self.anchors, self.surface, self.generators = anchors, surface, generators
+        self.opt, self.schedule = opt, schedule
+        self.draws = [device_draw(s) for s in samplers]
+
+    def before(self) -> None:
+        """The host's part of the next step, outside any graph."""
+        for draw in self.draws:
+            draw.before()
+
+    def __call__(self, warm: bool) -> dict[str, torch.Tensor]:
+        self.schedule.advance()
+        step = StepDraw([draw() for draw in self.draws])
+        if self.anchors is not None:
+            step.anchor_rows = self.anchors.draw(self.generators)
+        if self.surface is not None:
+            step.surface_rows = self.surface.draw(self.generators)
+        self.opt.zero_grad(set_to_none=True)
+        terms = loss_terms(self.model, self.datas, step, self.loss_cfg, self.indices,
+                           self.anchors if self.loss_cfg.lambda_gs else None, self.surface, warm=warm)
+        terms["total"].sum().backward()
+        self.opt.step()
+        return terms
+
+
+def _static_loop(step: _StaticStep, iters: int, warm_steps: int, device: torch.device, log: LoopLog,
+                 generators: list[torch.Generator], progress: Progress, capture: bool) -> str:
+    """Run ``step`` for every step: one :class:`~.graph.Replayer` (one CUDA graph with ``capture``)
+    for the warm-start steps and one for the main loss. Returns how the steps ran (see
+    :class:`TrainResult`)."""
+    runners: dict[bool, Replayer] = {}
+    failed = None
+    for i in range(iters):
+        step.before()
+        warm = i < warm_steps
+        runner = runners.get(warm)
+        if runner is None:
+            runners.clear()   # the warm start is over: its graph's memory goes back
+            runner = runners[warm] = Replayer(lambda w=warm: step(w), device, generators,
+                                              capture=capture and failed is None)
+        terms = runner()
+        if runner.failed and failed is None:
+            failed = runner.failed
+            progress.log(f"training: eager steps from step {i + 1:,} on (the CUDA graph capture failed: {failed})")
+        # a replay's results are overwritten by the next replay: the history keeps copies
+        log.step(i, {k: v.clone() for k, v in terms.items()} if log.records(i) else terms)
+    if failed is not None:
+        return f"eager (the CUDA graph capture failed: {failed})"
+    return "cuda graph" if capture else "eager"
