@@ -160,6 +160,7 @@ def run_case(name: str, args: argparse.Namespace) -> list[dict]:
                "time_s": elapsed, "confidence": reg.confidence, "overlap": reg.overlap,
                "coverage": reg.coverage, "residual_mm": reg.residual_mm,
                "start_deg": float(rigid.rotation_angle_deg(motion[:3, :3])),
+               "sensitivity": reg.weakest_motion["sensitivity"],
                "runner_up_mm": None if reg.runner_up is None else reg.runner_up["distance_mm"]}
         rows.append(row)
         if args.json:
@@ -178,7 +179,7 @@ def print_table(rows: list[dict]) -> None:
 
     head = (f"{'case':<11} {'target':<7} {'starts':>6} {'success':>8} {'median':>7} {'p90':>7} {'worst':>7} "
             f"{'max med':>8} {'rot med':>8} {'trans med':>9} {'time med':>9} {'time max':>9} "
-            f"{'overlap':>8} {'coverage':>8} {'conf med':>8}")
+            f"{'overlap':>8} {'coverage':>8} {'conf med':>8} {'sens med':>8}")
     print(head)
     print("-" * len(head))
     groups: dict[tuple, list[dict]] = {}
@@ -192,9 +193,9 @@ def print_table(rows: list[dict]) -> None:
               f"{np.median([r['rot_deg'] for r in g]):>8.2f} {np.median([r['trans_mm'] for r in g]):>9.2f} "
               f"{np.median([r['time_s'] for r in g]):>9.1f} {max(r['time_s'] for r in g):>9.1f} "
               f"{np.median([r['overlap'] for r in g]):>8.3f} {np.median([r['coverage'] for r in g]):>8.3f} "
-              f"{np.median(conf) if conf else float('nan'):>8.2f}")
+              f"{np.median(conf) if conf else float('nan'):>8.2f} {np.median([r['sensitivity'] for r in g]):>8.3f}")
     print(f"errors in mm (mean displacement of the CT surface; success: ≤ {SUCCESS_MM:g} mm), rotation in degrees, "
-          f"times in seconds; overlap, coverage, confidence: medians of the registrations' own figures")
+          f"times in seconds; overlap, coverage, confidence, sensitivity: medians of the registrations' own figures")
 
 
 def main() -> None:

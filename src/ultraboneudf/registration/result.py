@@ -33,7 +33,10 @@ class Registration:
     and that ``distance_mm`` — or ``None`` if every hypothesis refined into this pose.
     ``confidence``: ``1 − runner_up score / score`` (0: another pose explains the ultrasound as
     well, so the data cannot tell them apart; 1: nothing else comes close); ``None`` when the pose
-    came from ``init`` without a search. ``timings`` in seconds.
+    came from ``init`` without a search. ``weakest_motion``: the motion of the CT the explained
+    points feel least (:func:`~.constraint.weakest_motion`): its ``sensitivity`` is the RMS change of
+    their distances per mm it moves the CT surface — near 0 along a slide the view cannot fix, such
+    as a long bone's shaft seen without its ends. ``timings`` in seconds.
     """
 
     transform: np.ndarray
@@ -43,6 +46,7 @@ class Registration:
     score: float
     confidence: float | None
     runner_up: dict[str, Any] | None
+    weakest_motion: dict[str, Any]
     inlier_mm: float
     hypotheses: int
     timings: dict[str, float]
@@ -86,6 +90,7 @@ class Registration:
                 "score": _round(self.runner_up["score"]),
                 "distance_mm": _round(self.runner_up["distance_mm"]),
             },
+            "weakest_motion": self.weakest_motion,
             "hypotheses": self.hypotheses,
             "timings": {k: round(v, 4) for k, v in self.timings.items()},
             "counts": self.counts,

@@ -27,6 +27,7 @@ import trimesh
 from ..errors import InputError
 from ..progress import Progress
 from . import rigid
+from .constraint import weakest_motion
 from .model import BoneModel, prepare_bone
 from .options import RegisterOptions, with_overrides
 from .refine import icp, refine_in_field
@@ -75,7 +76,7 @@ def as_target_points(target: Any, seed: int = 0, source: str = "target") -> tupl
     if isinstance(target, (str, os.PathLike)):
         path = Path(target)
         source = str(path)
-        mesh = _mesh_file(path)
+        mesh = mesh_file(path)
         if mesh is None:
             points = load_points(path)
             check_units(points, source)
@@ -96,7 +97,7 @@ def as_target_points(target: Any, seed: int = 0, source: str = "target") -> tupl
     return points, "points"
 
 
-def _mesh_file(path: Path) -> trimesh.Trimesh | None:
+def mesh_file(path: Path) -> trimesh.Trimesh | None:
     """The mesh in ``path`` if it is a mesh file holding triangles, else ``None`` (a point cloud)."""
     from ..io import load_mesh
 
@@ -201,6 +202,7 @@ def register(ct: Any, target: Any, *, init: np.ndarray | None = None, seed: int 
     d = surface_distance(model, placed, workers)
     inliers = d <= opts.inlier_mm
     coverage = _coverage(model, placed, opts.inlier_mm, workers)
+    weakest = weakest_motion(model, placed, opts.icp_cutoffs_mm[-1], probe, to_target, workers)
     done = time.perf_counter()
     return Registration(
         transform=to_target,
@@ -210,6 +212,7 @@ def register(ct: Any, target: Any, *, init: np.ndarray | None = None, seed: int 
         score=_score(d, opts.inlier_mm),
         confidence=confidence,
         runner_up=runner_up,
+        weakest_motion=weakest,
         inlier_mm=opts.inlier_mm,
         hypotheses=int(found.hypotheses),
         timings={"prepare_s": prepared - start, "search_s": searched - prepared, "refine_s": done - searched,
