@@ -117,3 +117,37 @@ def test_register_refuses_bad_input_in_one_line(bad_files, monkeypatch, capsys, 
     assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not (here / "out.json").exists() and not (here / "out.jpg").exists() and not (here / "r.ply").exists()
     assert (here / "foreign.json").read_text() == '{"mine": true}\n'
+
+
+@pytest.fixture(scope="module")
+def sweep(case):
+    """A simulated tracked sweep over the CT bone, in the CT's own frame (the true pose: identity)."""
+    from ultraboneudf.synth.simulator import config_with_noise, simulate_sweep
+
+    folder, bone, _ = case
+    sim = simulate_sweep(bone, config_with_noise("moderate", width_px=128, height_px=160, spacing_mm=0.4, seed=1))
+    sim.write(folder / "sweep")
+    return folder / "sweep"
+
+
+def test_register_to_a_sweeps_points(case, sweep):
+    folder, bone, _ = case
+    out = folder / "sweep.json"
+    assert main(["register", str(folder / "ct.ply"), str(sweep), "-o", str(out), "--no-reconstruct", *FAST]) == 0
+    data = json.loads(out.read_text())
+    assert mean_error(np.array(data["transform"]), np.eye(4), bone) < 0.5
+    target = data["input"]["target"]
+    assert target["kind"] == "sweep points" and target["sweep"]["frames"] > 100 and target["sha256"]
+
+
+@pytest.mark.slow
+def test_register_to_a_sweeps_reconstruction(case, sweep):
+    folder, bone, _ = case
+    out, mesh = folder / "recon.json", folder / "recon.ply"
+    assert main(["register", str(folder / "ct.ply"), str(sweep), "-o", str(out), "--mesh", str(mesh),
+                 "--iters", "2000", "--device", "cpu", *FAST]) == 0
+    data = json.loads(out.read_text())
+    assert mean_error(np.array(data["transform"]), np.eye(4), bone) < 0.5
+    target = data["input"]["target"]
+    assert target["kind"] == "sweep reconstruction" and target["reconstruction"]["config"]["train"]["iters"] == 2000
+    assert mesh.exists() and (folder / "recon.ply.json").exists()
