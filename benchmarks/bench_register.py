@@ -25,7 +25,8 @@ Cases (each needs its data given by path; those without it are skipped):
 Targets (``--targets``): ``raw`` (the points as given) and ``mesh`` (the default preset's
 reconstruction of them, seed 0, made once and kept in ``--cache``). ``--floor`` adds one row per
 case: the refinement alone started at the true pose (``init``), i.e. the pose the ultrasound itself
-pulls to, which bounds what any search can reach.
+pulls to, which bounds what any search can reach. ``--icp-only`` adds the refinement alone from each
+random start (``init`` = the moved CT where it lies), what local registration without a search gives.
 
     python benchmarks/bench_register.py --real ../shared/data/real_clouds --cases femur_us,pelvis_us
     python benchmarks/bench_register.py --bones ../shared/data/bones --cache ../data/reg_cache \\
@@ -33,7 +34,9 @@ pulls to, which bounds what any search can reach.
     python benchmarks/bench_register.py --fibula-cloud fibula.ply --fibula-ct Fibula.stl --cases fibula_us
 
 ``--threads N`` limits NumPy's and the KD-tree's threads (set before NumPy loads). ``--json``
-appends one row per registration (JSON lines).
+appends one row per registration (JSON lines); ``--pictures DIR`` draws each case's first
+registration (``register_CASE_TARGET.png``: the CT in place, coloured by distance to the
+ultrasound).
 """
 
 from __future__ import annotations
@@ -140,15 +143,19 @@ def run_case(name: str, args: argparse.Namespace) -> list[dict]:
     motions = [random_motion(rng, centre, args.max_deg, args.max_mm) for _ in range(args.starts)]
     opts = dict(kv.split("=", 1) for kv in args.set)
     plan = [(kind, k, m) for kind in args.targets for k, m in enumerate(motions)]
+    if args.icp_only:
+        plan += [("icp-only", k, m) for k, m in enumerate(motions)]
     if args.floor:
-        plan.append(("raw", "floor", np.eye(4)))
+        plan.append(("floor", "floor", np.eye(4)))
+    targets["icp-only"] = targets["floor"] = points
     for kind, k, motion in plan:
         moved = ct.copy()
         moved.apply_transform(motion)
         truth = rigid.invert(motion)  # the moved CT → the target (= the CT's own) frame
         start = time.perf_counter()
+        init = {"floor": truth, "icp-only": np.eye(4)}.get(kind)
         reg = ultraboneudf.register(moved, targets[kind], seed=0 if k == "floor" else k, workers=args.workers,
-                                    init=truth if k == "floor" else None, **opts)
+                                    init=init, **opts)
         elapsed = time.perf_counter() - start
         on_moved = rigid.apply(motion, surface)
         err = rigid.displacement(reg.transform, truth, on_moved)
@@ -163,6 +170,13 @@ def run_case(name: str, args: argparse.Namespace) -> list[dict]:
                "sensitivity": reg.weakest_motion["sensitivity"],
                "runner_up_mm": None if reg.runner_up is None else reg.runner_up["distance_mm"]}
         rows.append(row)
+        if args.pictures and k == 0:
+            from ultraboneudf.io import atomic_write_bytes
+            from ultraboneudf.registration.figures import registration_png
+            from ultraboneudf.registration.solve import as_target_points
+
+            shown = as_target_points(targets[kind], 0)[0]
+            atomic_write_bytes(args.pictures / f"register_{name}_{kind}.png", registration_png(moved, reg, shown))
         if args.json:
             import json
 
@@ -177,18 +191,18 @@ def run_case(name: str, args: argparse.Namespace) -> list[dict]:
 def print_table(rows: list[dict]) -> None:
     import numpy as np
 
-    head = (f"{'case':<11} {'target':<7} {'starts':>6} {'success':>8} {'median':>7} {'p90':>7} {'worst':>7} "
+    head = (f"{'case':<11} {'target':<8} {'starts':>6} {'success':>8} {'median':>7} {'p90':>7} {'worst':>7} "
             f"{'max med':>8} {'rot med':>8} {'trans med':>9} {'time med':>9} {'time max':>9} "
             f"{'overlap':>8} {'coverage':>8} {'conf med':>8} {'sens med':>8}")
     print(head)
     print("-" * len(head))
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
-        groups.setdefault((r["case"], r["target"] if r["start"] != "floor" else "floor"), []).append(r)
+        groups.setdefault((r["case"], r["target"]), []).append(r)
     for (case, target), g in groups.items():
         m = np.array([r["mean_mm"] for r in g])
         conf = [r["confidence"] for r in g if r["confidence"] is not None]
-        print(f"{case:<11} {target:<7} {len(g):>6} {100 * np.mean(m <= SUCCESS_MM):>7.0f}% {np.median(m):>7.2f} "
+        print(f"{case:<11} {target:<8} {len(g):>6} {100 * np.mean(m <= SUCCESS_MM):>7.0f}% {np.median(m):>7.2f} "
               f"{np.percentile(m, 90):>7.2f} {m.max():>7.2f} {np.median([r['max_mm'] for r in g]):>8.2f} "
               f"{np.median([r['rot_deg'] for r in g]):>8.2f} {np.median([r['trans_mm'] for r in g]):>9.2f} "
               f"{np.median([r['time_s'] for r in g]):>9.1f} {max(r['time_s'] for r in g):>9.1f} "
@@ -213,8 +227,11 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the random starts (default 0)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="registration option")
     p.add_argument("--floor", action="store_true", help="add the refinement from the true pose")
+    p.add_argument("--icp-only", action="store_true", help="add the refinement alone from each start")
     p.add_argument("--threads", type=int, default=None, help="NumPy and KD-tree threads (default: all)")
     p.add_argument("--json", type=Path, default=None, help="append each registration as a JSON line")
+    p.add_argument("--pictures", type=Path, default=None,
+                   help="folder for a picture of each case's first registration (the CT in place)")
     p.add_argument("--verbose", action="store_true", help="one line per registration on stderr")
     args = p.parse_args()
     args.cases = [c for c in args.cases.split(",") if c]
