@@ -15,7 +15,7 @@ from .result import Registration
 
 def _title(reg: Registration) -> str:
     conf = "" if reg.confidence is None else f", confidence {reg.confidence:.2f}"
-    return (f"CT in place: residual {reg.residual_mm:.2f} mm, overlap {100 * reg.overlap:.0f}%, "
+    return (f"residual {reg.residual_mm:.2f} mm, overlap {100 * reg.overlap:.0f}%, "
             f"coverage {100 * reg.coverage:.0f}%{conf}")
 
 
