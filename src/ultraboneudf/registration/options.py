@@ -58,7 +58,9 @@ class RegisterOptions:
 
     def resolve(self, diagonal: float) -> "RegisterOptions":
         """A copy with every ``None`` length set from the CT's bounding-box diagonal (mm)."""
-        grid = self.grid_mm or float(np.clip(diagonal / 150.0, 1.0, 3.0))
+        from .model import grid_spacing
+
+        grid = self.grid_mm or grid_spacing(diagonal)
         voxel = self.voxel_mm or float(np.clip(0.75 * grid, 1.0, 2.0))
         radius = self.normal_radius_mm or max(4.0, 3.0 * voxel)
         spacing = self.ct_spacing_mm or float(np.clip(diagonal / 50.0, 2.0, 8.0))
