@@ -23,6 +23,7 @@ _WHERE = {
     "load_mesh": "io", "load_points": "io", "save_mesh": "io",
     "Reconstruction": "pipeline", "reconstruct": "pipeline", "reconstruct_many": "pipeline",
     "FittedSurface": "pipeline", "fit": "pipeline",
+    "Registration": "registration", "register": "registration",
 }
 
 __all__ = ["__version__", *_WHERE]

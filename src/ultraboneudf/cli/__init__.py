@@ -17,7 +17,8 @@ import warnings
 from .._version import __version__
 from ..errors import FitWarning, InputError, SweepWarning
 
-COMMANDS = ["reconstruct", "demo", "evaluate", "render", "stats", "sweep2points", "simulate", "bench", "config", "info"]
+COMMANDS = ["reconstruct", "demo", "evaluate", "render", "register", "stats", "sweep2points", "simulate", "bench",
+            "config", "info"]
 
 
 class _Parser(argparse.ArgumentParser):

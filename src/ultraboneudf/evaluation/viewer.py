@@ -71,13 +71,15 @@ def _mesh_layer(blob: _Blob, mesh: MeshLike, centre: np.ndarray, values: Optiona
 def viewer_html(mesh: MeshLike, reference: Optional[np.ndarray] = None, ground_truth: Optional[MeshLike] = None,
                 points: Optional[np.ndarray] = None, title: str = "reconstruction",
                 vmax: float = DEFAULT_VMAX_MM, max_points: int = DEFAULT_MAX_POINTS, seed: int = 0,
-                mean_mm: Optional[float] = None, up_axis: Optional[int] = None) -> str:
+                mean_mm: Optional[float] = None, up_axis: Optional[int] = None,
+                label: str = "reconstruction") -> str:
     """The viewer page as a string.
 
     ``mesh``: the reconstruction (mm). ``reference``: ground-truth points to colour by (e.g.
     :func:`~.render.reference_points`); ``None`` draws it grey. ``ground_truth``: mesh shown as a
     toggleable ghost. ``points``: input cloud (mm), randomly thinned to ``max_points`` (seeded).
-    ``mean_mm`` overrides the mean written under the colour bar.
+    ``mean_mm`` overrides the mean written under the colour bar (NaN: none written). ``label``
+    names ``mesh`` beside its check box.
     """
     v, f = mesh_arrays(mesh, "reconstruction")
     finite = v[np.isfinite(v).all(axis=1)]
@@ -109,7 +111,7 @@ def viewer_html(mesh: MeshLike, reference: Optional[np.ndarray] = None, ground_t
             pts = pts[np.sort(np.random.default_rng(seed).choice(len(pts), max_points, replace=False))]
         meta["points"] = {"positions": blob.add((pts - centre).astype(np.float32)), "count": int(len(pts))}
     meta_json = json.dumps(meta).replace("</", "<\\/")
-    return (_PAGE.replace("__TITLE__", html.escape(title))
+    return (_PAGE.replace("__TITLE__", html.escape(title)).replace("__LABEL__", html.escape(label))
             .replace("__META__", meta_json)
             .replace("__DATA__", blob.b64())
             .replace("__SCRIPT__", _SCRIPT))
@@ -144,7 +146,7 @@ _PAGE = """<!DOCTYPE html>
 <canvas id="view"></canvas>
 <div id="panel">
   <h1 id="title">__TITLE__</h1>
-  <label><input type="checkbox" id="show-recon" checked> reconstruction</label>
+  <label><input type="checkbox" id="show-recon" checked> __LABEL__</label>
   <label id="row-gt"><input type="checkbox" id="show-gt"> ground truth</label>
   <label id="row-points"><input type="checkbox" id="show-points"> input points</label>
   <div id="legend">

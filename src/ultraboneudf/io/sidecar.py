@@ -55,15 +55,8 @@ def check_outputs(mesh_path: str | os.PathLike, inputs: tuple[str | os.PathLike,
     :class:`InputError` naming the file; returns ``mesh_path`` as a :class:`Path`."""
     mesh = check_mesh_path(mesh_path)
     side = sidecar_path(mesh)
-    for given in map(Path, inputs):
-        if not given.exists():
-            continue
-        for out in (mesh, side):
-            if given.is_dir() and out.resolve().is_relative_to(given.resolve()):
-                raise InputError(f"{out}: inside the input folder {given}; write the output elsewhere")
-            if out.exists() and out.samefile(given):
-                raise InputError(f"{out}: is the input; the input is never overwritten, choose another "
-                                 f"output name")
+    for out in (mesh, side):
+        _not_an_input(out, inputs)
     meta = read_sidecar(side) if side.exists() else None
     if side.exists() and meta is None:
         raise InputError(f"{side}: exists and is not a sidecar of ultraboneudf; writing {mesh} would "
@@ -74,15 +67,56 @@ def check_outputs(mesh_path: str | os.PathLike, inputs: tuple[str | os.PathLike,
     if mesh.exists() and meta is None and legacy_sidecar(mesh) is None:
         raise InputError(f"{mesh}: exists and is not an output of ultraboneudf (no sidecar {side.name}); "
                          f"choose another output name or remove it")
-    folder = mesh.parent if mesh.parent.exists() else next(
-        (p for p in mesh.resolve().parents if p.exists()), Path("."))
+    _writable(mesh)
+    return mesh
+
+
+def check_json_output(path: str | os.PathLike, inputs: tuple[str | os.PathLike, ...], kind: str) -> Path:
+    """Check, before any work, that writing the JSON record ``path`` loses nothing: it ends in
+    ``.json``, is neither an input nor inside an input folder, replaces only an earlier record of
+    the same ``kind`` (its ``"kind"`` key), and its folder is writable and has room. Raises
+    :class:`InputError` naming the file; returns ``path`` as a :class:`Path`."""
+    path = Path(path)
+    if path.suffix.lower() != ".json":
+        raise InputError(f"{path}: the output must be a .json file")
+    _not_an_input(path, inputs)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder")
+    if path.exists():
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            data = None
+        if not isinstance(data, dict) or data.get("kind") != kind:
+            raise InputError(f"{path}: exists and is not an earlier {kind}; choose another output name "
+                             f"or remove it")
+    _writable(path)
+    return path
+
+
+def _not_an_input(out: Path, inputs: tuple[str | os.PathLike, ...]) -> None:
+    """Raise :class:`InputError` when ``out`` is one of ``inputs`` or inside an input folder."""
+    for given in map(Path, inputs):
+        if not given.exists():
+            continue
+        if given.is_dir() and out.resolve().is_relative_to(given.resolve()):
+            raise InputError(f"{out}: inside the input folder {given}; write the output elsewhere")
+        if out.exists() and out.samefile(given):
+            raise InputError(f"{out}: is the input; the input is never overwritten, choose another "
+                             f"output name")
+
+
+def _writable(out: Path) -> None:
+    """Raise :class:`InputError` when ``out``'s folder (or its nearest existing parent) cannot be
+    written or has less than :data:`FREE_SPACE_BYTES` free."""
+    folder = out.parent if out.parent.exists() else next(
+        (p for p in out.resolve().parents if p.exists()), Path("."))
     if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-        raise InputError(f"{mesh}: cannot write into {folder} (permission denied)")
+        raise InputError(f"{out}: cannot write into {folder} (permission denied)")
     free = shutil.disk_usage(folder).free
     if free < FREE_SPACE_BYTES:
-        raise InputError(f"{mesh}: only {free / 2**20:.0f} MB free in {folder}; need at least "
+        raise InputError(f"{out}: only {free / 2**20:.0f} MB free in {folder}; need at least "
                          f"{FREE_SPACE_BYTES >> 20} MB")
-    return mesh
 
 
 def save_mesh_with_sidecar(mesh: trimesh.Trimesh, path: str | os.PathLike, sidecar: dict[str, Any]) -> Path:
