@@ -17,7 +17,9 @@ bone's side:
    echo. Echoes *behind* a layer are left alone: the two faces of a thin plate of bone (the iliac
    wing) are each other's back side, and both are bone.
 2. **The probe's side.** With a sweep's probe positions the front of a plane is the side of its
-   probe. A compounded cloud has none; bone, seen from outside, is mostly convex, so the front of a
+   probe, and an echo counted in front must also have the dense surface under it on its own beam
+   (the beam that imaged a false echo went on to the bone; one that imaged bone stopped there,
+   whatever bone other beams saw behind it, as in the hollows of a small bone). A compounded cloud has none; bone, seen from outside, is mostly convex, so the front of a
    representative's plane is the side away from which its neighbours within ``convexity`` bend (the
    median height of the representatives around it above its plane is negative), made consistent
    with its neighbours' choice within ``2 × spacing`` by a majority vote.
@@ -36,7 +38,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from .neighbors import kd_tree
-from .surface_fit import LocalPlanes
+from .surface_fit import LocalPlanes, shadowed
 from .voxel import voxel_groups
 
 _LAYER_BIN = 1.0      # mm: the column's histogram bin; a layer is three bins (±1.5 mm)
@@ -45,6 +47,7 @@ _CHUNK = 256          # representatives per vectorised block (≈ 10⁶ pairs)
 _CONSENSUS_ROUNDS = 3
 _CONVEXITY = 20.0     # mm: the scale at which bone is convex (a femoral shaft's radius is 12-15 mm)
 _DENSE = 0.5          # a representative's neighbourhood holds at least this × the median count
+_BEAM_TOLERANCE = 1.0  # mm: how near its beam the bone under a sweep's false echo lies
 
 
 def false_echoes(points: np.ndarray, planes: LocalPlanes, view: np.ndarray | None, *, depth: float,
@@ -74,6 +77,12 @@ def false_echoes(points: np.ndarray, planes: LocalPlanes, view: np.ndarray | Non
                 front = front_orientation(pts[reps], planes.normal[reps], _CONVEXITY, radius)
             out = in_front_of_denser_layer(pts, reps, front, depth=depth, lateral=radius,
                                            gap=0.75 * radius, ratio=ratio) >= votes
+            if view is not None:
+                # the beam that imaged a false echo in front of the bone went on to the bone; one
+                # that imaged bone stopped there, whatever bone other beams saw behind it
+                rows = np.flatnonzero(out)
+                out[rows] = shadowed(pts[rows], -view[rows], 0.75 * radius, depth, _BEAM_TOLERANCE,
+                                     occluders=pts[strong])
     if fraction > 0 and view is None:
         rows = np.flatnonzero(~out)
         out[rows[small_components(pts[rows], radius, fraction)]] = True
