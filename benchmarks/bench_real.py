@@ -19,9 +19,11 @@ Scores, as the paper scores real data (every distance over ``--samples`` area sa
 pseudo ground truth (pGT) = the CT surface within 2 mm of an input point; ``cd_mm`` = ½(mean mesh →
 pGT + mean pGT → mesh); ``hd95_mm`` = the larger directed 95th percentile; ``on_bone`` = share of the
 mesh area within 2 mm of the CT; ``covered`` = share of the pGT within 2 mm of the mesh; ``pieces`` =
-connected pieces of the mesh; ``off_mm2`` = mesh area more than 2 mm from the CT (on the sweep: the
-other bones in view, such as the tibia, and anything invented). The row ``points`` scores the input
-points themselves as if they were the surface. ``time_s`` is end to end.
+connected pieces of the mesh; ``off_mm2`` = mesh area more than 2 mm from the CT. On the sweep the
+CT is one of the bones in view (the fibula beside the tibia): CD, HD95 and ``on_bone`` score the
+mesh within ``--near-mm`` (10 mm) of it, and ``far_mm2`` is the area beyond (the other bones, and
+anything invented there). The row ``points`` scores the input points themselves as if they were the
+surface. ``time_s`` is end to end.
 
 The input points are described against the CT too (``--describe``, also printed with every run):
 their distance to the bone in bands, and the groups that the points more than 2 mm off it form
@@ -53,7 +55,7 @@ ON_BONE_MM = 2.0
 CT_SAMPLES = 2_000_000
 GROUP_LINK_MM = 2.0
 COLUMNS = ["case", "variant", "method", "preset", "cd_mm", "hd95_mm", "on_bone", "covered", "pieces", "off_mm2",
-           "time_s"]
+           "far_mm2", "time_s"]
 
 
 class Truth:
@@ -82,18 +84,25 @@ class Truth:
         side = np.einsum("ij,ij->i", points - self.mesh.vertices[v], self.mesh.vertex_normals[v])
         return np.where(side < 0, -d, d)
 
-    def score(self, surface: np.ndarray, area: float | None = None) -> dict:
+    def score(self, surface: np.ndarray, area: float | None = None, near: float | None = None) -> dict:
         """The scores of the module docstring for area samples (or points) ``surface`` of a mesh of
-        ``area`` mm² (``None`` for points)."""
+        ``area`` mm² (``None`` for points). With ``near`` (mm), the CT's bone is one of several in
+        view: CD, HD95 and ``on_bone`` score the samples within ``near`` of it, and ``far_mm2`` is
+        the area beyond (the other bones, and anything invented there)."""
         from ultraboneudf.geometry.neighbors import kd_tree
 
-        d_rg = self.pgt_tree.query(surface, k=1, workers=-1)[0]
+        to_bone = self.tree.query(surface, k=1, workers=-1)[0]
+        own = np.ones(len(surface), dtype=bool) if near is None else to_bone <= near
+        d_rg = self.pgt_tree.query(surface[own], k=1, workers=-1)[0]
         d_gr = kd_tree(surface).query(self.pgt, k=1, workers=-1)[0]
-        off = self.tree.query(surface, k=1, workers=-1)[0] > ON_BONE_MM
-        return {"cd_mm": round(0.5 * float(d_rg.mean() + d_gr.mean()), 3),
-                "hd95_mm": round(max(float(np.percentile(d_rg, 95)), float(np.percentile(d_gr, 95))), 2),
-                "on_bone": round(1.0 - float(off.mean()), 3), "covered": round(float(np.mean(d_gr <= 2.0)), 3),
-                "off_mm2": None if area is None else round(float(area * off.mean()), 1)}
+        off = to_bone > ON_BONE_MM
+        out = {"cd_mm": round(0.5 * float(d_rg.mean() + d_gr.mean()), 3),
+               "hd95_mm": round(max(float(np.percentile(d_rg, 95)), float(np.percentile(d_gr, 95))), 2),
+               "on_bone": round(1.0 - float(off[own].mean()), 3), "covered": round(float(np.mean(d_gr <= 2.0)), 3),
+               "off_mm2": None if area is None else round(float(area * off.mean()), 1)}
+        if near is not None and area is not None:
+            out["far_mm2"] = round(float(area * np.mean(~own)), 1)
+        return out
 
 
 def describe(points: np.ndarray, truth: Truth) -> dict:
@@ -170,8 +179,9 @@ def sweep_points(sweep: Path, step: int, cache: Path, seed_log) -> Path:
 
 
 def run(method: str, preset: str, points: np.ndarray, truth: Truth, args: argparse.Namespace, probe=None,
-        frames=None):
-    """One reconstruction and its scores; returns the row and the mesh (``None`` on failure)."""
+        frames=None, near: float | None = None):
+    """One reconstruction and its scores (``near``: :meth:`Truth.score`); returns the row and the
+    mesh (``None`` on failure)."""
     import ultraboneudf
     from ultraboneudf.errors import InputError
     from ultraboneudf.evaluation.sampling import sample_surface
@@ -187,7 +197,7 @@ def run(method: str, preset: str, points: np.ndarray, truth: Truth, args: argpar
     row = {"time_s": round(time.perf_counter() - t0, 1), "points": len(points)}
     if rec.mesh is None:
         return {**row, "failed": True}, None
-    row.update(truth.score(sample_surface(rec.mesh, args.samples, seed=0), float(rec.mesh.area)))
+    row.update(truth.score(sample_surface(rec.mesh, args.samples, seed=0), float(rec.mesh.area), near))
     row["pieces"] = int(rec.quality.get("components", 0))
     return row, rec.mesh
 
@@ -199,6 +209,8 @@ def main() -> None:
     p.add_argument("--sweep", type=Path, help="a tracked sweep (folder or sequence file)")
     p.add_argument("--ct", type=Path, help="the CT bone mesh of --sweep")
     p.add_argument("--frame-steps", default="1,3,10")
+    p.add_argument("--near-mm", type=float, default=10.0, help="--sweep: score the mesh within this of the CT's "
+                   "bone; the area beyond is reported as far_mm2 (other bones in view)")
     p.add_argument("--methods", default=METHODS, help="comma-separated; METHOD@PRESET runs a method with "
                    "another preset than --preset (e.g. ultraboneudf@fast)")
     p.add_argument("--preset", default="robust")
@@ -209,6 +221,8 @@ def main() -> None:
     p.add_argument("--samples", type=int, default=300_000, help="area samples per mesh")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--describe", action="store_true", help="only describe the inputs against their CT")
+    p.add_argument("--rescore", action="store_true", help="score the rows already in --json again from their "
+                   "meshes in --meshes (after a change of the scoring), rewriting --json")
     p.add_argument("--cache", type=Path, default=Path("bench_out/real_inputs"))
     p.add_argument("--json", type=Path, help="append each row here (JSON lines); skip rows already in it")
     p.add_argument("--pictures", type=Path, help="one distance-coloured PNG per input here")
@@ -223,9 +237,9 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     log = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
-    inputs = []  # (case, variant, points, probe, frames, ct)
+    inputs = []  # (case, variant, points, probe, frames, ct, near)
     for name, pts, ct in clouds_from(args):
-        inputs.append((name, "cloud", load_points(pts), None, None, ct))
+        inputs.append((name, "cloud", load_points(pts), None, None, ct, None))
     if args.sweep:
         if not args.ct:
             sys.exit("--sweep needs --ct (the CT mesh of the bone to score)")
@@ -234,20 +248,20 @@ def main() -> None:
             points = load_points(path)
             probe, frames = load_sweep_columns(path, len(points))
             case = f"{args.sweep.name}/{step}"
-            inputs.append((case, "sweep", points, probe, frames, args.ct))
-            inputs.append((case, "cloud", points, None, None, args.ct))
+            inputs.append((case, "sweep", points, probe, frames, args.ct, args.near_mm))
+            inputs.append((case, "cloud", points, None, None, args.ct, args.near_mm))
     if not inputs:
         sys.exit("nothing to run: give --cloud, --clouds or --sweep with --ct")
     done = []
     if args.json and args.json.exists():
         done = [json.loads(line) for line in args.json.read_text().splitlines() if line.strip()]
-    rows, truths = [], {}
-    for case, variant, points, probe, frames, ct in inputs:
+    rows, truths, rescored = [], {}, False
+    for case, variant, points, probe, frames, ct, near in inputs:
         if case not in truths:
             truths[case] = Truth(ct, points)
             info = describe(points, truths[case])
             log(f"{case}: {json.dumps(info)}")
-            score = truths[case].score(points)
+            score = truths[case].score(points, near=near)
             rows.append({"case": case, "variant": "input", "method": "points", **score,
                          "points": len(points), "describe": info})
         if args.describe:
@@ -261,13 +275,18 @@ def main() -> None:
             old = next((r for r in done if all(r.get(k) == v for k, v in key.items())), None)
             stored = None if args.meshes is None else args.meshes / mesh_name(case, variant, name, preset)
             if old is not None:
-                rows.append(old)
-                if stored is not None and stored.exists():  # for the pictures
+                if stored is not None and stored.exists():  # for the pictures, or to score again
                     from ultraboneudf import load_mesh
+                    from ultraboneudf.evaluation.sampling import sample_surface
 
                     meshes[method] = load_mesh(stored)
+                    if args.rescore:
+                        mesh = meshes[method]
+                        old.update(truth.score(sample_surface(mesh, args.samples, seed=0), float(mesh.area), near))
+                        rescored = True
+                rows.append(old)
                 continue
-            row, mesh = run(name, preset, points, truth, args, probe, frames)
+            row, mesh = run(name, preset, points, truth, args, probe, frames, near)
             rows.append({**key, **row})
             log(json.dumps(rows[-1]))
             if args.json:
@@ -286,6 +305,12 @@ def main() -> None:
             render_grid_png(args.pictures / f"{case.replace('/', '_')}_{variant}.png", meshes,
                             truth.samples[:: max(1, len(truth.samples) // 300_000)], views=("front", "right", "top"),
                             ground_truth=truth.mesh)
+    if rescored:  # the file again, every row as scored now
+        kept = [r for r in done if not any(r is row for row in rows)]
+        text = "".join(json.dumps(r) + "\n" for r in kept + [r for r in rows if r.get("variant") != "input"])
+        from ultraboneudf.io import atomic_write_bytes
+
+        atomic_write_bytes(args.json, text.encode())
     print_table(rows)
 
 
