@@ -171,8 +171,11 @@ def test_cli_simulate_then_sweep2points(capsule, tmp_path, capsys):
             "--height-px", "120", "--spacing-mm", "0.3", "--seed", "1", "--quiet"]
     assert main(args) == 0
     assert "6 frames" in capsys.readouterr().out
-    assert main(args) == 2                       # refuses a non-empty folder
-    assert "not empty" in capsys.readouterr().err
+    assert main(args + ["--seed", "2"]) == 0     # an earlier simulation is replaced as a whole
+    (out / "notes.txt").write_text("mine")
+    assert main(args) == 2                       # a folder with a file of the user's is not
+    assert "notes.txt" in capsys.readouterr().err and (out / "notes.txt").read_text() == "mine"
+    (out / "notes.txt").unlink()
     pts = tmp_path / "p.xyz"
     assert main(["sweep2points", str(out), "-o", str(pts), "--segment", "classical", "--quiet"]) == 0
     assert np.median(capsule_distance(np.loadtxt(pts)[:, :3])) < 0.5

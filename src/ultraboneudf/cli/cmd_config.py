@@ -120,8 +120,6 @@ def update_docs(text: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..pipeline import configure
-
     if args.update_docs is not None:
         from ..errors import InputError
         from ..io import atomic_write_bytes, check_input
@@ -139,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
         state = "rewritten" if new != text else "up to date"
         print(f"config: {path}: {len(BLOCK.findall(text))} tables {state}")
         return 0
+    from ..pipeline import configure
+
     cfg, _ = configure(args.preset, args.method, None, None, args.assignments)
     if args.json:
         print(json.dumps(cfg.to_dict(), indent=2))

@@ -79,15 +79,17 @@ def checkpoint_path(output: Path) -> Path:
     return output.with_name(output.name + ".ckpt")
 
 
-def check_config(args: argparse.Namespace, overrides: dict) -> None:
+def check_config(args: argparse.Namespace, overrides: dict) -> dict:
     """The ``--set`` values checked before PyTorch loads: every key, type and choice; for the
     default method (whose configuration is the preset's) every range too. The other methods'
-    ranges are checked once their defaults are known (:func:`~ultraboneudf.pipeline.configure`)."""
+    ranges are checked once their defaults are known (:func:`~ultraboneudf.pipeline.configure`).
+    Returns the configuration so far as a dict (the preset with the user's values)."""
     from ..config import apply_overrides, preset, validate
 
     cfg = apply_overrides(preset(args.preset), overrides, args.assignments)
     if args.method == "ultraboneudf":
         validate(cfg)
+    return cfg.to_dict()
 
 
 def read_points(path: Path, args: argparse.Namespace
@@ -110,9 +112,10 @@ def read_points(path: Path, args: argparse.Namespace
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..io import check_input, check_output, check_outputs
+    from .. import checkpoints
+    from ..io import check_input, check_output, check_outputs, sha256_file
 
-    # every check that needs no PyTorch first: outputs, options, the input itself
+    # every check first, none of them needs PyTorch: outputs, options, the input, the checkpoint
     inputs = (args.input, *sweep_inputs(args))
     output = check_outputs(args.output, inputs, overwrite=args.overwrite)
     checkpointing = args.checkpoint_every is not None or args.resume
@@ -124,11 +127,8 @@ def run(args: argparse.Namespace) -> int:
         check_output(ckpt, inputs=inputs, kind="bare")  # its name and place; its owner below
     check_input(args.input, "file", folder=True)
     overrides = {} if args.iters is None else {"train.iters": args.iters}
-    check_config(args, overrides)
-    from ..sweep import is_sweep_path
-
-    sweep = is_sweep_path(args.input)
-    if sweep:
+    config = check_config(args, overrides)
+    if args.input.is_dir() or args.input.suffix.lower() in SWEEP_SUFFIXES:
         if args.units != "mm":
             raise InputError(f"{args.input}: --units applies to point cloud files; a sweep's geometry comes "
                              f"from its calibration (mm)")
@@ -137,31 +137,29 @@ def run(args: argparse.Namespace) -> int:
         cloud = None
     else:
         cloud = read_points(args.input, args)
-    return _run(args, output, overrides, cloud, checkpointing)
-
-
-def _run(args: argparse.Namespace, output: Path, overrides: dict, cloud, checkpointing: bool) -> int:
-    from .. import checkpoints
-    from ..io import save_mesh_with_sidecar, sha256_file
-    from ..pipeline import configure, reconstruct
-    from ..progress import Progress
-
-    cfg, entry = configure(args.preset, args.method, None, overrides, args.assignments)
-    progress = Progress(quiet=args.quiet)
     input_sha = sha256_file(args.input)
     checkpoint = None
     if checkpointing:
-        if not entry.takes_checkpoint:
-            raise InputError(f"--method {args.method} cannot checkpoint its training; drop "
-                             f"--checkpoint-every/--resume")
-        key = checkpoints.run_key(input_sha, cfg.to_dict(), args.method, args.seed, units=args.units,
-                                  sweep={k: str(v) for k, v in sorted(vars(args).items())
-                                         if k in _SWEEP_KEYS})
+        key = checkpoints.run_key(input_sha, config, args.method, args.seed, preset=args.preset, units=args.units,
+                                  sweep={k: str(v) for k, v in sorted(vars(args).items()) if k in _SWEEP_KEYS})
         checkpoint = checkpoints.Checkpoint(checkpoint_path(output), every=args.checkpoint_every or 0,
                                             resume=args.resume, run=key)
         checkpoints.check(checkpoint, overwrite=args.overwrite)
-        if args.resume and not checkpoint.path.exists():
-            progress.log(f"no checkpoint {checkpoint.path} yet: training starts at step 0")
+    return _run(args, output, overrides, cloud, checkpoint, input_sha)
+
+
+def _run(args: argparse.Namespace, output: Path, overrides: dict, cloud, checkpoint, input_sha: str) -> int:
+    from ..io import save_mesh_with_sidecar
+    from ..pipeline import configure, reconstruct
+    from ..progress import Progress
+
+    _, entry = configure(args.preset, args.method, None, overrides, args.assignments)
+    if checkpoint is not None and not entry.takes_checkpoint:
+        raise InputError(f"--method {args.method} cannot checkpoint its training; drop "
+                         f"--checkpoint-every/--resume")
+    progress = Progress(quiet=args.quiet)
+    if checkpoint is not None and args.resume and not checkpoint.path.exists():
+        progress.log(f"no checkpoint {checkpoint.path} yet: training starts at step 0")
     if cloud is None:
         res = sweep_points(args.input, args, progress)
         points, probe, frames, sweep_info = (res.points.points, res.points.probe_position,
@@ -191,6 +189,9 @@ def _run(args: argparse.Namespace, output: Path, overrides: dict, cloud, checkpo
         print(f"ultraboneudf reconstruct: warning: {warning}", file=sys.stderr)
     return 0
 
+
+SWEEP_SUFFIXES = (".mha", ".mhd", ".nrrd", ".nhdr")
+"""Sequence files read as a sweep (as :func:`~ultraboneudf.sweep.is_sweep_path` tells; a folder is one too)."""
 
 _SWEEP_KEYS = ("calibration", "transform", "reference", "image_frame", "transforms", "segment", "masks",
                "mask_dir", "detector", "no_consistency", "threshold", "no_align_frames")
