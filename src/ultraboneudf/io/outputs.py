@@ -241,7 +241,6 @@ def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike]
     existing = check_name(path, side)
     if path.parent.is_dir():
         recover(path.parent)
-    _not_an_input(path, [path, *side], inputs, folder_kind)
     special = _special(path)
     if special is not None:
         raise InputError(f"{path}: is {special}, not an output file; choose another name")
@@ -252,7 +251,8 @@ def check_output(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike]
         if kind == "folder" and (Path.cwd().resolve().is_relative_to(real) or os.path.ismount(real)):
             raise InputError(f"{path}: is the current folder, holds it, or is a mount point; a folder "
                              f"output is replaced as a whole, name a new folder")
-    elif path.is_dir() and not path.is_symlink():
+    _not_an_input(path, [path, *side], inputs, folder_kind)
+    if not folder_kind and path.is_dir() and not path.is_symlink():
         raise InputError(f"{path}: is a folder; choose a file name")
     problem = None if kind == "bare" else verify_output(path, kind)
     if problem is not None and not overwrite:
