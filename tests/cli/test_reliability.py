@@ -554,18 +554,20 @@ def test_case(results, case):
 
 
 def test_refusals_before_any_work_load_neither_torch_nor_trimesh(tmp_path):
-    """A refusal answers before PyTorch (or, for a point cloud or an output check, trimesh) loads:
-    benchmarks/bench_cli.py times them (0.4 s instead of 2.5 s)."""
+    """A refusal answers before PyTorch (or, for a point cloud, an output or a checkpoint, trimesh)
+    loads: benchmarks/bench_cli.py times them."""
     _inputs(tmp_path)
     (tmp_path / "report.md").write_text("mine")
     (tmp_path / "photo.png").write_text("mine")
+    (tmp_path / "o.ply.ckpt").write_text("mine")
     code = textwrap.dedent("""
         import sys
         from ultraboneudf.cli import main
         for argv in (["reconstruct", "nothing.xyz", "-o", "o.ply"], ["reconstruct", "in.xyz", "-o", "o.ply", "--set",
                      "train.nope=1"], ["stats", "results.csv", "--baseline", "A", "-o", "report.md"],
                      ["simulate", "capsule.ply", "-o", "s", "--set", "n_frames=-3"],
-                     ["render", "recon.ply", "-o", "photo.png"], ["demo", "--out", "sweep"]):
+                     ["render", "recon.ply", "-o", "photo.png"], ["demo", "--out", "sweep"],
+                     ["reconstruct", "in.xyz", "-o", "o.ply", "--checkpoint-every", "10", "--resume"]):
             assert main(argv) == 2, argv
         print("HEAVY", sorted(m for m in ("torch", "trimesh") if m in sys.modules), file=sys.stderr)
     """)

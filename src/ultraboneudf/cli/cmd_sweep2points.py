@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-
 from typing import TYPE_CHECKING
 
 from ..errors import InputError
@@ -103,12 +102,11 @@ def _run(args: argparse.Namespace, out: Path) -> int:
                        outlier_k=args.outlier_k, outlier_std=args.outlier_std,
                        outlier_factor=args.outlier_factor, frame_step=args.frame_step)
     cp, sweep = res.points, res.sweep
-    if args.overlays is not None and sweep.images is None:
-        raise InputError(f"{args.sweep}: --overlays needs the sweep's B-mode frames; it has masks only")
     meta = record("sweep2points", input={"path": str(args.sweep.resolve()), "sha256": sha256_file(args.sweep)},
                   options={k: str(v) for k, v in sorted(vars(args).items()) if k not in ("func", "output")},
                   sweep=res.info)
-    overlays = [] if args.overlays is None else [
+    sheets = args.overlays is not None and sweep.images is not None
+    overlays = [] if not sheets else [
         (args.overlays, lambda folder: _write_overlays(sweep, res.masks, folder),
          record("sweep2points", overlays_of=out.name))]
     write_outputs([(out, encode_points(out, cp), meta)], overlays, overwrite=args.overwrite)
@@ -117,6 +115,8 @@ def _run(args: argparse.Namespace, out: Path) -> int:
     print(f"sweep2points: {len(cp)} points from {frames_with_bone}/{sweep.n_frames} frames "
           f"(segmentation: {res.method}); extent {np.round(hi - lo, 1).tolist()} mm; wrote {out} and "
           f"its sidecar {out.name}.json")
-    if args.overlays is not None:
+    if sheets:
         print(f"sweep2points: wrote {-(-sweep.n_frames // 30)} overlay sheet(s) to {args.overlays}")
+    elif args.overlays is not None:
+        print(f"sweep2points: {args.sweep} has masks but no B-mode frames: no overlay sheets")
     return 0

@@ -89,9 +89,8 @@ def check_sweep_options(path: Path, args: argparse.Namespace) -> None:
     (:class:`InputError`, one line naming it). Loading a TorchScript model imports PyTorch."""
     from ..io import check_input
 
-    for name in ("calibration",):
-        if getattr(args, name, None) is not None:
-            check_input(getattr(args, name), "calibration file")
+    if getattr(args, "calibration", None) is not None:
+        check_input(args.calibration, "calibration file")
     for item in getattr(args, "transforms", None) or []:
         check_input(item, "transform sequence file")
     detector = parse_kv(args.detector)

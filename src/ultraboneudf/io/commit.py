@@ -113,7 +113,7 @@ def _owner_pid(name: str) -> int | None:
 
 
 def _running(pid: int) -> bool:
-    if pid == os.getpid():
+    if pid == os.getpid() or os.name == "nt":  # (on Windows os.kill would end the process)
         return True
     try:
         os.kill(pid, 0)
