@@ -144,26 +144,32 @@ def test_a_full_disk_puts_the_earlier_files_back(tmp_path, monkeypatch):
 
 
 def test_staged_files_of_a_dead_process_are_removed_and_a_live_ones_kept(tmp_path):
+    """Only this machine's: on storage shared by a cluster another machine's process ids mean nothing here."""
+    from ultraboneudf.io.commit import _HOST
+
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
                           text=True).stdout.strip()
-    (tmp_path / f".bone.ply.{dead}-0a1b2c3d.ubtmp").write_bytes(b"half")
-    (tmp_path / f".bone.ply.{os.getpid()}-0a1b2c3d.ubtmp").write_bytes(b"being written")
-    (tmp_path / "notes.ubtmp").write_bytes(b"a user's file")
+    (tmp_path / f".bone.ply.{dead}-{_HOST}-0a1b2c3d.ubtmp").write_bytes(b"half")
+    kept = [f".bone.ply.{os.getpid()}-{_HOST}-0a1b2c3d.ubtmp", f".bone.ply.{dead}-ffffff-0a1b2c3d.ubtmp",
+            "notes.ubtmp"]
+    for name in kept:
+        (tmp_path / name).write_bytes(b"being written, or a user's file")
     recover(tmp_path)
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-        [f".bone.ply.{os.getpid()}-0a1b2c3d.ubtmp", "notes.ubtmp"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(kept)
 
 
 def test_a_journal_marked_done_is_finished(tmp_path):
     """Killed after the moment the new result counts: its backups are dropped, nothing restored."""
+    from ultraboneudf.io.commit import _HOST
+
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
                           text=True).stdout.strip()
     (tmp_path / "bone.ply").write_bytes(b"new")
-    backup = tmp_path / f".bone.ply.{dead}-00000000.ubold"
+    backup = tmp_path / f".bone.ply.{dead}-{_HOST}-00000000.ubold"
     backup.write_bytes(b"old")
-    entry = {"target": str(tmp_path / "bone.ply"), "staged": str(tmp_path / f".bone.ply.{dead}-1.ubtmp"),
+    entry = {"target": str(tmp_path / "bone.ply"), "staged": str(tmp_path / f".bone.ply.{dead}-{_HOST}-1.ubtmp"),
              "backup": str(backup), "existed": True}
-    (tmp_path / f".ultraboneudf-commit.{dead}-00000000.done").write_text(json.dumps([entry]))
+    (tmp_path / f".ultraboneudf-commit.{dead}-{_HOST}-00000000.done").write_text(json.dumps([entry]))
     recover(tmp_path)
     assert _state(tmp_path) == {"bone.ply": b"new"}
 

@@ -247,3 +247,17 @@ def test_simulate_set_values_take_the_options_own_types(tmp_path, capsys):
         assert main(["simulate", str(mesh), "-o", str(tmp_path / "out"), "--set", item]) == 2
         err = capsys.readouterr().err
         assert words in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("field,bad", [
+    ("n_frames", -3), ("n_frames", 1), ("width_px", 0), ("height_px", 10_000), ("spacing_mm", 0.0),
+    ("frame_spacing_mm", -1.0), ("tilt_deg", 95.0), ("max_incidence_deg", 0.0), ("pred_gap_fraction", 1.5),
+    ("shadow_level", -0.1), ("pred_thickness_px", 0), ("missing_runs", -1), ("sweep_axis", (0.0, 0.0, 0.0)),
+    ("speed_variation", float("nan")), ("seed", -1), ("gt_step_mm", 0.0)])
+def test_impossible_settings_are_refused_naming_the_field(field, bad):
+    """A setting no simulation can use is refused when the configuration is made, before any work
+    (``n_frames=-3`` used to give a sweep of two frames)."""
+    from ultraboneudf.errors import InputError
+
+    with pytest.raises(InputError, match=rf"impossible simulator settings: {field}="):
+        config_with_noise("default", **{field: bad})

@@ -24,21 +24,23 @@ against the process ending, not against a power cut.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import secrets
 import shutil
 import signal
+import socket
 import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
 STAGED = ".ubtmp"
-"""Suffix of a staged file or folder (``.NAME.PID-TOKEN.ubtmp``) and of a backup (``….ubold``)."""
+"""Suffix of a staged file or folder (``.NAME.PID-HOST-TOKEN.ubtmp``) and of a backup (``….ubold``)."""
 BACKUP = ".ubold"
 JOURNAL = ".ultraboneudf-commit."
-"""Prefix of a commit's journal: ``.ultraboneudf-commit.PID-TOKEN.json`` while the commit runs,
+"""Prefix of a commit's journal: ``.ultraboneudf-commit.PID-HOST-TOKEN.json`` while the commit runs,
 renamed to ``….done`` at the moment the new result counts."""
 
 DEFERRED_SIGNALS = tuple(s for s in (getattr(signal, "SIGINT", None), getattr(signal, "SIGTERM", None),
@@ -94,8 +96,13 @@ def signals_deferred() -> Iterator[None]:
 # names
 
 
+_HOST = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:6]
+"""This machine, in the names of staged files: a folder shared between machines (a cluster's
+storage) is cleaned only of the staged files of this machine's dead processes."""
+
+
 def _token() -> str:
-    return f"{os.getpid()}-{secrets.token_hex(4)}"
+    return f"{os.getpid()}-{_HOST}-{secrets.token_hex(4)}"
 
 
 def staged_name(target: Path, suffix: str = STAGED) -> Path:
@@ -105,10 +112,12 @@ def staged_name(target: Path, suffix: str = STAGED) -> Path:
 
 
 def _owner_pid(name: str) -> int | None:
-    """The process id in a staged, backup or journal name."""
+    """The id of the process of this machine whose staged, backup or journal name this is (``None``:
+    another machine's, or not such a name)."""
     try:
-        return int(name.rsplit(".", 2)[-2].split("-")[0])
-    except (IndexError, ValueError):
+        pid, host, _ = name.rsplit(".", 2)[-2].split("-")
+        return int(pid) if host == _HOST else None
+    except ValueError:
         return None
 
 
