@@ -540,9 +540,10 @@ def exit_codes(root: Path) -> None:
 def refusal_cost(root: Path) -> None:
     """Seconds and peak memory of refusals that need no work."""
     cls = "cost of a refusal"
+    (root / "user.png").write_text("the user's picture\n")
     for label, argv in (("missing input", ["reconstruct", "nothing.xyz", "-o", "o.ply"]),
                         ("unknown --set key", ["reconstruct", "in.xyz", "-o", "o.ply", "--set", "train.bogus=1"]),
-                        ("a user's file at the output", ["render", "recon.ply", "-o", "gt.ply"]),
+                        ("a user's file at the output", ["render", "recon.ply", "-o", "user.png"]),
                         ("`--detector bad_key=1`", ["sweep2points", "sim", "-o", "d.ply", "--detector", "bad_key=1"]),
                         ("`simulate --set n_frames=-3`", ["simulate", "capsule.ply", "-o", "n", "--set", "n_frames=-3"])):
         times = [run(argv, root)["s"] for _ in range(3)]

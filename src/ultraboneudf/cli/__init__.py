@@ -22,6 +22,7 @@ import importlib
 import os
 import signal
 import sys
+import threading
 import traceback
 import warnings
 
@@ -50,8 +51,6 @@ def _signals_raise():
     """While a command runs (main thread only): SIGTERM and SIGHUP raise :class:`Terminated`."""
     def terminate(signum, frame):
         raise Terminated(signum)
-
-    import threading
 
     if threading.current_thread() is not threading.main_thread():
         yield

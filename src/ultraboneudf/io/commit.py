@@ -55,7 +55,7 @@ class WriteError(OSError):
     output is still in place and nothing of the new one is left. The message names the file."""
 
 
-def _write_error(target: Path, exc: OSError) -> WriteError:
+def _write_error(target: str | os.PathLike, exc: OSError) -> WriteError:
     return WriteError(exc.errno, f"{target}: cannot write ({exc.strerror or exc}); nothing written, the "
                                  f"earlier output kept")
 
@@ -172,11 +172,12 @@ def _locked(folders: list[Path]) -> Iterator[None]:
 
 @dataclass
 class _Entry:
-    target: Path
+    target: Path                   # absolute
     staged: Path | None            # None: the target is removed
     backup: Path | None = None     # where the earlier target went (set in the commit)
     existed: bool = False
     placed: bool = False           # the staged content is at the target now
+    shown: str = ""                # the target as the caller named it (for messages)
 
     def as_dict(self) -> dict:
         return {"target": str(self.target), "staged": None if self.staged is None else str(self.staged),
@@ -289,57 +290,54 @@ class Commit:
         if not self._done:
             self.discard()
 
-    def _add(self, target: Path, staged: Path | None) -> _Entry:
-        target = Path(os.path.abspath(target))
+    def _add(self, given: str | os.PathLike, staged: bool) -> _Entry:
+        target = Path(os.path.abspath(given))
         if any(e.target == target for e in self._entries):
             raise ValueError(f"{target}: given twice in one commit")
-        entry = _Entry(target, staged)
+        entry = _Entry(target, staged_name(target) if staged else None, shown=str(given))
         self._entries.append(entry)
         return entry
 
     def write(self, target: str | os.PathLike, data: bytes) -> None:
         """Stage ``data`` as the new content of the file ``target`` (with the permissions a plain
         ``open`` gives a new file)."""
-        target = Path(os.path.abspath(target))
-        entry = self._add(target, staged_name(target))  # the name is known before the file exists
+        entry = self._add(target, staged=True)  # the staged name is known before the file exists
         try:
-            target.parent.mkdir(parents=True, exist_ok=True)
+            entry.target.parent.mkdir(parents=True, exist_ok=True)
             with open(entry.staged, "xb") as fh:
                 _step(f"create {entry.staged.name}")
                 fh.write(data)
         except OSError as exc:
-            raise _write_error(target, exc) from None
+            raise _write_error(entry.shown, exc) from None
         _step(f"write {entry.staged.name}")
 
     def file(self, target: str | os.PathLike) -> Path:
         """A new empty staged file for the content of the file ``target``, for a writer that needs a
         path (SQLite); returns its name."""
-        target = Path(os.path.abspath(target))
-        entry = self._add(target, staged_name(target))
+        entry = self._add(target, staged=True)
         try:
-            target.parent.mkdir(parents=True, exist_ok=True)
+            entry.target.parent.mkdir(parents=True, exist_ok=True)
             with open(entry.staged, "xb"):
                 pass
         except OSError as exc:
-            raise _write_error(target, exc) from None
+            raise _write_error(entry.shown, exc) from None
         _step(f"create {entry.staged.name}")
         return entry.staged
 
     def folder(self, target: str | os.PathLike) -> Path:
         """A new empty folder to fill with the content of the folder ``target``; returns it."""
-        target = Path(os.path.abspath(target))
-        entry = self._add(target, staged_name(target))
+        entry = self._add(target, staged=True)
         try:
-            target.parent.mkdir(parents=True, exist_ok=True)
+            entry.target.parent.mkdir(parents=True, exist_ok=True)
             entry.staged.mkdir()
         except OSError as exc:
-            raise _write_error(target, exc) from None
+            raise _write_error(entry.shown, exc) from None
         _step(f"create {entry.staged.name}")
         return entry.staged
 
     def remove(self, target: str | os.PathLike) -> None:
         """Remove the file or folder ``target`` as part of the commit (when it exists then)."""
-        self._add(Path(target), None)
+        self._add(target, staged=False)
 
     def discard(self) -> None:
         """Remove everything staged (signals held meanwhile, so the clean-up itself completes)."""
@@ -375,7 +373,7 @@ class Commit:
             raise
         except OSError as exc:
             self.discard()
-            raise _write_error(entries[0].target if entries else Path("output"), exc) from None
+            raise _write_error(entries[0].shown if entries else "output", exc) from None
         except BaseException:
             self.discard()
             raise

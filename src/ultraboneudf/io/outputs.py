@@ -120,8 +120,8 @@ def _file_problem(path: Path) -> str | None:
         return f"{side}: is the sidecar of {_named(meta)}, not of {path.name}"
     if not exists:
         return None
-    if path.is_symlink():
-        return f"{path}: exists and is a link, not an output of ultraboneudf"
+    if path.is_symlink() or not path.is_file():
+        return f"{path}: exists and is {'a link' if path.is_symlink() else 'not a file'}, not an output of ultraboneudf"
     if meta is None:
         if legacy_sidecar(path) is not None:
             return None
@@ -167,7 +167,7 @@ def _folder_problem(path: Path, resumable: bool) -> str | None:
         rel = f.relative_to(path).as_posix()
         if rel == FOLDER_RECORD:
             continue
-        if rel not in listed or f.is_symlink():
+        if rel not in listed or f.is_symlink() or not f.is_file():
             return f"{f}: in {path} but not written by ultraboneudf; choose a new folder"
         if _sha256(f) != listed[rel]:
             return f"{f}: changed since ultraboneudf wrote it; choose a new folder"
