@@ -604,7 +604,7 @@ The contract, for every command that writes (`reconstruct`, `sweep2points`, `ren
   and must be plain names; a MetaIO header's pixel data lie beside it.
 - **Every bad input, option or file is refused before any work**, in one line naming it (control
   characters in names written as escapes), exit 2 — and before PyTorch loads wherever the check does
-  not need it (0.4 s and 45 MB instead of 2.5 s and 300 MB).
+  not need it (0.15 s and 45 MB instead of 1.7–3.4 s and 300–400 MB: `benchmarks/bench_cli.py`).
 
 **Exit codes, one rule for every command:**
 
