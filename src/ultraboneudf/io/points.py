@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import InputError
 from .inputs import check_fits_memory, check_input
-from .ply import MAX_PLY_VERTICES, check_ply_length, read_ply_header
+from .ply import check_ply_length, read_ply_header
 
 MIN_POINTS = 100
 
