@@ -1,6 +1,7 @@
 """Datasets as manifests, the resumable experiment runner and its tables."""
 
 import base64
+import re
 import json
 import os
 import time
@@ -266,3 +267,18 @@ def test_a_dataset_cloud_brings_its_probe_positions_and_frames(tmp_path):
     got = _read_input(tmp_path / "cloud.ply")
     np.testing.assert_array_equal(got[1], probe)
     np.testing.assert_array_equal(got[2], frames)
+
+
+def test_cells_being_written_are_not_finished_and_ids_stay_in_their_folder(tmp_path, dataset):
+    """A cell is staged under a hidden name and put in place whole: a staged one never counts as
+    finished. A manifest id names a folder, so it must be a plain name: never ``../x`` or ``/x``."""
+    staged = tmp_path / "run" / "cells" / ".ball__ultraboneudf__0.1-abcdef-00.ubtmp"
+    staged.mkdir(parents=True)
+    (staged / "result.json").write_text(json.dumps({"status": "ok"}))
+    assert finished_rows(tmp_path / "run") == []
+    text = dataset.read_text().splitlines()
+    for uid in ("../../x", "/abs/x", "a/b", ".."):
+        bad = dataset.parent / "bad.csv"
+        bad.write_text(text[0] + "\n" + text[1].replace("ball,", f"{uid},", 1) + "\n")
+        with pytest.raises(InputError, match=rf"line 2: id '{re.escape(uid)}' is not a plain name"):
+            read_manifest(bad)

@@ -92,11 +92,11 @@ def bad_files(case, tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["missing.ply", "{target}", "-o", "out.json"], "missing.ply: no such file"),
+    (["missing.ply", "{target}", "-o", "out.json"], "missing.ply: no such"),
     (["{ct}", "missing.npy", "-o", "out.json"], "missing.npy: no such file"),
     (["cloud.xyz", "{target}", "-o", "out.json"], "cloud.xyz: "),
     (["{ct}", "{target}", "-o", "out.txt"], "must be a .json file"),
-    (["{ct}", "{target}", "-o", "foreign.json"], "is not an earlier ultraboneudf registration"),
+    (["{ct}", "{target}", "-o", "foreign.json"], "exists and is not an output of ultraboneudf"),
     (["{ct}", "{target}", "-o", "shear.json", "--init", "shear.json"], "is the input"),
     (["{ct}", "{target}", "-o", "out.json", "--init", "shear.json"], "not rigid"),
     (["{ct}", "{target}", "-o", "out.json", "--set", "anchor=3"], "unknown registration option 'anchor'"),

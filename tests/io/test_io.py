@@ -165,3 +165,70 @@ def test_clouds_without_sweep_columns_give_none_and_bad_columns_name_the_file(tm
     with pytest.raises(InputError, match=r"short.npz: the probe positions must be one row of three per "
                                          r"point \(200\), got shape \(199, 3\)"):
         load_sweep_columns(tmp_path / "short.npz", 200)
+
+
+def test_a_cloud_larger_than_memory_is_refused_before_it_is_read(tmp_path, monkeypatch):
+    """Text is read as a stream and its size estimated from its first lines; a ``.npy`` or ``.npz``
+    from its header: a cloud whose points cannot fit is refused, naming the memory it needs."""
+    from ultraboneudf.io import inputs
+
+    pts = _cloud(5000)
+    text = tmp_path / "c.xyz"
+    np.savetxt(text, pts)
+    big = tmp_path / "big.npy"
+    with open(big, "wb") as fh:          # a header declaring 10⁹ points and no data
+        np.lib.format.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False, "shape": (10**9, 3)})
+    with pytest.raises(InputError, match=r"big.npy: its 1,000,000,000 points need about 67.1 GiB of memory"):
+        load_points(big)
+    np.testing.assert_allclose(load_points(text), pts, atol=1e-6)
+    monkeypatch.setattr(inputs, "available_memory", lambda: 100_000)
+    with pytest.raises(InputError, match=r"c.xyz: its 5,\d\d\d lines of text need about"):
+        load_points(text)
+    np.savez(tmp_path / "c.npz", points=pts)
+    with pytest.raises(InputError, match="c.npz: its 5,000 points need"):
+        load_points(tmp_path / "c.npz")
+
+
+def test_a_long_text_cloud_is_read_whole_and_a_late_bad_line_is_named(tmp_path):
+    """Past the first MiB read to size it, the stream still reads every line, and names a bad one."""
+    pts = _cloud(60_000)
+    lines = [f"{a:.9f} {b:.9f} {c:.9f}" for a, b, c in pts]
+    path = tmp_path / "long.xyz"
+    path.write_text("# scanner export\n" + "\n".join(lines) + "\n")
+    assert path.stat().st_size > 2 << 20
+    np.testing.assert_allclose(load_points(path), pts, atol=1e-8)
+    lines[50_000] = "1.0 2.0 three"
+    path.write_text("# scanner export\n" + "\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"long.xyz: line 50002: cannot parse"):
+        load_points(path)
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # trimesh's normals of the damaged mesh written here
+def test_meshes_are_refused_when_damaged_and_read_as_given_otherwise(tmp_path):
+    """A NaN vertex, a face naming a vertex the file lacks, a header promising more faces than the
+    file holds: one line naming the file. A sound mesh with no triangles is ``None`` (a counted
+    failure of a method), never an error."""
+    from ultraboneudf.io import load_mesh, read_mesh
+
+    m = trimesh.creation.icosphere(subdivisions=2)
+    v = m.vertices.copy()
+    v[7] = [np.inf, 0, 0]
+    trimesh.Trimesh(v, m.faces, process=False).export(tmp_path / "inf.stl")
+    with pytest.raises(InputError, match=r"inf.stl: \d+ vertices are NaN or infinite"):
+        read_mesh(tmp_path / "inf.stl")
+    lines = trimesh.exchange.ply.export_ply(m, encoding="ascii").decode().splitlines()
+    (tmp_path / "cut.ply").write_text("\n".join(lines[:-10]) + "\n")
+    with pytest.raises(InputError, match="cut.ply: the header declares 320 faces but the file holds 310"):
+        read_mesh(tmp_path / "cut.ply")
+    binary = trimesh.exchange.ply.export_ply(m)
+    (tmp_path / "cut_b.ply").write_bytes(binary[:-100])
+    with pytest.raises(InputError, match="cut_b.ply"):
+        read_mesh(tmp_path / "cut_b.ply")
+    (tmp_path / "empty.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+                                        "property float z\nelement face 0\nproperty list uchar int vertex_indices\n"
+                                        "end_header\n")
+    assert read_mesh(tmp_path / "empty.ply") is None
+    with pytest.raises(InputError, match="holds no triangles"):
+        load_mesh(tmp_path / "empty.ply")
+    m.export(tmp_path / "ok.obj")
+    assert np.array_equal(read_mesh(tmp_path / "ok.obj").faces, m.faces)

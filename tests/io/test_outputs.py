@@ -3,10 +3,8 @@ and a mesh is never left without its sidecar."""
 
 import json
 import os
-import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -14,7 +12,7 @@ import trimesh
 
 from ultraboneudf.cli import main
 from ultraboneudf.errors import InputError
-from ultraboneudf.io import check_outputs, save_mesh_with_sidecar, sidecar_path
+from ultraboneudf.io import WriteError, check_outputs, save_mesh_with_sidecar, sidecar_path
 
 FAST = ["--preset", "fast", "--iters", "200", "--set", "train.batch=1000", "--set", "extract.max_depth=6",
         "--set", "model.hidden=32,32", "--quiet"]
@@ -114,49 +112,25 @@ def test_an_output_with_an_earlier_versions_sidecar_is_recognised(tmp_path):
 
 
 @pytest.mark.parametrize("failure", [OSError(28, "No space left on device"), KeyboardInterrupt()])
-def test_a_failure_between_the_two_files_leaves_neither(tmp_path, monkeypatch, failure):
-    """The mesh is renamed into place first and the sidecar last; a failure or Ctrl-C at the
-    sidecar's rename removes the mesh again and every temporary file."""
+def test_a_failure_between_the_two_files_leaves_the_earlier_pair(tmp_path, monkeypatch, failure):
+    """The mesh is renamed into place first and the sidecar last; a full disk or Ctrl-C at the
+    sidecar's rename puts the earlier pair back (here: none) and removes every staged file. A full
+    disk is a failure after the work (``WriteError``: exit 1), not a refusal."""
     real = os.replace
     calls = []
 
     def replace(src, dst):
-        calls.append(dst)
-        if str(dst).endswith(".json"):
+        calls.append(os.path.basename(dst))
+        if str(dst).endswith(".ply.json"):
             raise failure
         real(src, dst)
 
     monkeypatch.setattr(os, "replace", replace)
     out = tmp_path / "m.ply"
-    expected = InputError if isinstance(failure, OSError) else KeyboardInterrupt
+    expected = WriteError if isinstance(failure, OSError) else KeyboardInterrupt
     with pytest.raises(expected):
         save_mesh_with_sidecar(trimesh.creation.icosahedron(), out, SIDECAR)
-    assert [str(c) for c in calls] == [str(out), str(sidecar_path(out))]
-    assert list(tmp_path.iterdir()) == []
-
-
-def test_sigterm_while_committing_leaves_neither(tmp_path):
-    """A SIGTERM between the two renames (a slow disk, the process killed by a scheduler) removes
-    the mesh already in place."""
-    out = tmp_path / "m.ply"
-    script = f"""
-import os, sys, time, trimesh
-from ultraboneudf import io
-real = os.replace
-def slow(src, dst):
-    if str(dst).endswith('.json'):
-        print('between', flush=True)
-        time.sleep(30)
-    real(src, dst)
-os.replace = slow
-io.save_mesh_with_sidecar(trimesh.creation.icosahedron(), {str(out)!r}, {SIDECAR!r})
-"""
-    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
-    assert proc.stdout.readline().strip() == "between"
-    assert out.exists()                     # the mesh is in place, its sidecar not yet
-    proc.send_signal(signal.SIGTERM)
-    assert proc.wait(timeout=20) == 128 + signal.SIGTERM
-    time.sleep(0.1)
+    assert calls[-2:] == ["m.ply", "m.ply.json"]
     assert list(tmp_path.iterdir()) == []
 
 
@@ -226,3 +200,69 @@ def test_a_cloud_in_the_wrong_unit_is_one_line_before_any_work(tmp_path, capsys,
     with pytest.raises(InputError, match="beyond"):
         from ultraboneudf.io import check_units
         check_units(np.array([[0.0, 0.0, 0.0], [2e6, 1.0, 1.0]]))
+
+
+def test_a_folder_output_is_replaced_only_when_every_file_in_it_is_ours(tmp_path, monkeypatch):
+    """A folder output (a simulation, a demo, a dataset) lists its files in ultraboneudf.json: it is
+    replaced as a whole while they are there unchanged; a file added or edited by the user stops it
+    (``--overwrite`` replaces it anyway); an empty folder is simply used; the current folder never."""
+    from ultraboneudf.io import check_output, write_folder_output
+    from ultraboneudf.io.outputs import record
+
+    out = tmp_path / "sim"
+
+    def fill(text):
+        return lambda folder: ((folder / "frames").mkdir(), (folder / "frames" / "0.png").write_text(text))
+
+    write_folder_output(out, fill("first"), record("test"))
+    assert check_output(out, kind="folder") == out
+    write_folder_output(out, fill("second"), record("test"))
+    assert (out / "frames" / "0.png").read_text() == "second"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sim"]          # no backup, no staging left
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="notes.txt: in .* but not written by ultraboneudf"):
+        check_output(out, kind="folder")
+    (out / "notes.txt").unlink()
+    (out / "frames" / "0.png").write_text("edited")
+    with pytest.raises(InputError, match="0.png: changed since ultraboneudf wrote it"):
+        check_output(out, kind="folder")
+    assert check_output(out, kind="folder", overwrite=True) == out
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert check_output(empty, kind="folder") == empty
+    monkeypatch.chdir(out)
+    with pytest.raises(InputError, match="is the current folder"):
+        check_output(out, kind="folder", overwrite=True)
+
+
+def test_names_the_file_system_cannot_hold_and_special_files_are_refused(tmp_path):
+    """Before any work: a name whose sidecar's name is too long, a path through a file, a named pipe
+    at the output's name, a folder where a file goes."""
+    from ultraboneudf.io import check_output
+
+    with pytest.raises(InputError, match=r"the name of its sidecar .* is 259 bytes long, more than the 255"):
+        check_output(tmp_path / ("b" * 250 + ".ply"))
+    with pytest.raises(InputError, match=r"is 256 bytes long"):
+        check_output(tmp_path / ("b" * 252 + ".ply"))
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(InputError, match="not a folder"):
+        check_output(tmp_path / "file" / "out.ply")
+    os.mkfifo(tmp_path / "pipe.png")
+    with pytest.raises(InputError, match="is a named pipe"):
+        check_output(tmp_path / "pipe.png", overwrite=True)
+    (tmp_path / "dir.png").mkdir()
+    with pytest.raises(InputError, match="is a folder"):
+        check_output(tmp_path / "dir.png", overwrite=True)
+
+
+def test_a_disk_with_too_little_room_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    import shutil
+
+    from ultraboneudf.io.outputs import FREE_SPACE_BYTES
+
+    src = _cloud_ply(tmp_path / "in.ply")
+    usage = shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage._replace(free=FREE_SPACE_BYTES // 2))
+    assert main(["reconstruct", str(src), "-o", str(tmp_path / "m.ply"), *FAST]) == 2
+    _one_error(capsys, "only 32 MB free", "need at least 64 MB")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.ply"]

@@ -171,8 +171,11 @@ def test_cli_simulate_then_sweep2points(capsule, tmp_path, capsys):
             "--height-px", "120", "--spacing-mm", "0.3", "--seed", "1", "--quiet"]
     assert main(args) == 0
     assert "6 frames" in capsys.readouterr().out
-    assert main(args) == 2                       # refuses a non-empty folder
-    assert "not empty" in capsys.readouterr().err
+    assert main(args + ["--seed", "2"]) == 0     # an earlier simulation is replaced as a whole
+    (out / "notes.txt").write_text("mine")
+    assert main(args) == 2                       # a folder with a file of the user's is not
+    assert "notes.txt" in capsys.readouterr().err and (out / "notes.txt").read_text() == "mine"
+    (out / "notes.txt").unlink()
     pts = tmp_path / "p.xyz"
     assert main(["sweep2points", str(out), "-o", str(pts), "--segment", "classical", "--quiet"]) == 0
     assert np.median(capsule_distance(np.loadtxt(pts)[:, :3])) < 0.5
@@ -280,3 +283,17 @@ def test_real_level_offsets_the_boundary_slowly_along_the_sweep(capsule):
     assert 0.4 < np.median(per_frame) < 1.6                 # about a millimetre off the surface
     assert np.abs(np.diff(per_frame)).max() < 0.6            # drifting, not jumping, frame to frame
     assert config_with_noise("real").pred_offset_mm == 1.0
+
+
+@pytest.mark.parametrize("field,bad", [
+    ("n_frames", -3), ("n_frames", 1), ("width_px", 0), ("height_px", 10_000), ("spacing_mm", 0.0),
+    ("frame_spacing_mm", -1.0), ("tilt_deg", 95.0), ("max_incidence_deg", 0.0), ("pred_gap_fraction", 1.5),
+    ("shadow_level", -0.1), ("pred_thickness_px", 0), ("missing_runs", -1), ("sweep_axis", (0.0, 0.0, 0.0)),
+    ("speed_variation", float("nan")), ("seed", -1), ("gt_step_mm", 0.0), ("pred_sheets_per_cm", -1.0)])
+def test_impossible_settings_are_refused_naming_the_field(field, bad):
+    """A setting no simulation can use is refused when the configuration is made, before any work
+    (``n_frames=-3`` used to give a sweep of two frames)."""
+    from ultraboneudf.errors import InputError
+
+    with pytest.raises(InputError, match=rf"impossible simulator settings: {field}="):
+        config_with_noise("default", **{field: bad})

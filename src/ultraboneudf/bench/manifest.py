@@ -14,6 +14,7 @@ import csv
 import io
 import math
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +22,8 @@ from ..errors import InputError
 from ..io import atomic_write_bytes
 
 COLUMNS = ("id", "specimen", "input", "gt", "pseudo_gt_mm")
+PLAIN_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
+"""An id names a folder of the runner's results: a plain name, never a path."""
 
 
 @dataclass(frozen=True)
@@ -36,11 +39,15 @@ class Unit:
 
 def read_manifest(path: str | os.PathLike) -> list[Unit]:
     """The units of a manifest CSV; :class:`InputError` naming the file and line for a missing
-    column, an empty or duplicate id, a file that does not exist or a bad τ."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: no such manifest file")
-    rows = list(csv.DictReader(io.StringIO(path.read_text(encoding="utf-8-sig"))))
+    column, an empty or duplicate id, an id that is not a plain name (``../x``, ``/abs/x``: the
+    runner's folders are named after it), a file that does not exist or a bad τ."""
+    from ..io import check_input
+
+    path = check_input(path, "manifest file")
+    try:
+        rows = list(csv.DictReader(io.StringIO(path.read_text(encoding="utf-8-sig"))))
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file (cannot decode as UTF-8)") from None
     header = set(rows[0]) if rows else set()
     missing = [c for c in COLUMNS[:4] if c not in header]
     if missing:
@@ -51,6 +58,9 @@ def read_manifest(path: str | os.PathLike) -> list[Unit]:
         uid = (row.get("id") or "").strip()
         if not uid or uid in seen:
             raise InputError(f"{path}: line {line}: {'empty' if not uid else 'duplicate'} id {uid!r}")
+        if not PLAIN_ID.fullmatch(uid) or ".." in uid:
+            raise InputError(f"{path}: line {line}: id {uid!r} is not a plain name (up to 100 letters, "
+                             f"digits, '.', '_' or '-'; no path): the results are stored under it")
         seen.add(uid)
         files = {}
         for key in ("input", "gt"):

@@ -1,12 +1,13 @@
 """The experiment runner: cells (unit × method × overrides), one folder each, resumable.
 
-A cell's folder holds ``mesh.ply`` with its sidecar ``mesh.ply.json`` and, written last and
-atomically, ``result.json`` (the metrics, the timings, the counts, the parameters). A cell is
-finished exactly when its ``result.json`` exists: a run killed at any moment leaves at most one
-unfinished folder, which the next run clears and recomputes. A failed reconstruction is a finished
-cell too (its ``result.json`` says why); ``retry_failed`` runs those again. ``results.csv`` and
-``results.sqlite`` are rebuilt from the ``result.json`` files after every cell, so they always list
-exactly the finished cells.
+A cell's folder holds ``mesh.ply`` with its sidecar ``mesh.ply.json`` and ``result.json`` (the
+metrics, the timings, the counts, the parameters); it is filled under a staged name and put in
+place whole (:class:`~ultraboneudf.io.commit.Commit`), so a cell is finished exactly when its folder
+exists, and a run killed at any moment leaves no unfinished one. A failed reconstruction is a
+finished cell too (its ``result.json`` says why); ``retry_failed`` runs those again, replacing
+their folders. ``results.csv`` and ``results.sqlite`` are rebuilt together from the ``result.json``
+files after every cell, so they always list exactly the finished cells. The run folder holds the
+record ``ultraboneudf.json`` that marks it as one (:mod:`ultraboneudf.io.outputs`).
 """
 
 from __future__ import annotations
@@ -14,9 +15,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
-import shutil
 import sqlite3
-import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +25,8 @@ import numpy as np
 
 from .._version import __version__
 from ..errors import InputError
-from ..io import atomic_write_bytes, save_json
+from ..io import Commit, save_json
+from ..io.outputs import FOLDER_RECORD, read_record, record
 from ..progress import QUIET, Progress
 from .manifest import Unit
 
@@ -109,7 +109,11 @@ def run_cells(cells: list[Cell], out: Path, *, device: str = "auto", samples: in
         raise InputError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
     for cell in cells:
         configure(cell.preset, cell.method, None, None, list(cell.overrides))
+        if not (out / "cells" / cell.id).resolve().is_relative_to((out / "cells").resolve()):
+            raise InputError(f"cell {cell.id!r}: its folder would lie outside {out / 'cells'}")
     out.mkdir(parents=True, exist_ok=True)
+    if read_record(out / FOLDER_RECORD) is None:
+        save_json(record("bench run"), out / FOLDER_RECORD)
     counts = {"done": 0, "skipped": 0, "failed": 0}
     todo = []
     for cell in cells:
@@ -181,13 +185,18 @@ def _worker_init(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
-def _run_cell(cell: Cell, folder: Path, device: str, samples: int) -> dict[str, Any]:
+def _run_cell(cell: Cell, target: Path, device: str, samples: int) -> dict[str, Any]:
+    """Run one cell into a staged folder and put it in place of ``target`` whole."""
+    with Commit() as commit:
+        row = _fill_cell(cell, commit.folder(target), device, samples)
+        commit.commit()
+    return row
+
+
+def _fill_cell(cell: Cell, folder: Path, device: str, samples: int) -> dict[str, Any]:
     import ultraboneudf
     from ..evaluation import evaluate
 
-    if folder.exists():
-        shutil.rmtree(folder)              # an unfinished cell of an earlier run: start it again
-    folder.mkdir(parents=True)
     row: dict[str, Any] = {"cell": cell.id, "unit": cell.unit.id, "specimen": cell.unit.specimen,
                            "method": cell.method, "preset": cell.preset, "seed": cell.seed,
                            "overrides": " ".join(cell.overrides), "version": __version__,
@@ -220,7 +229,7 @@ def _run_cell(cell: Cell, folder: Path, device: str, samples: int) -> dict[str, 
             row.update(status="failed" if ev.failed else "ok", reason=ev.reason)
     except InputError as exc:
         row.update(status="failed", reason=str(exc))
-    save_json({k: row.get(k) for k in COLUMNS}, folder / "result.json")   # last: the cell is finished
+    save_json({k: row.get(k) for k in COLUMNS}, folder / "result.json")
     return row
 
 
@@ -244,13 +253,26 @@ def _read_input(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray |
     return (points, *load_sweep_columns(path, len(points)))
 
 
+def earlier_run(out: Path) -> bool:
+    """``out`` is the folder of an earlier run: it holds the record of one, or (an earlier version's
+    run) nothing but ``cells/`` and the two tables."""
+    if not out.is_dir() or out.is_symlink():
+        return False
+    if read_record(out / FOLDER_RECORD) is not None:
+        return True
+    names = {p.name for p in out.iterdir()}
+    return "cells" in names and names <= {"cells", "results.csv", "results.sqlite"}
+
+
 def finished_rows(out: Path) -> list[dict[str, Any]]:
     """The ``result.json`` rows of every finished cell under ``out``, sorted by cell id."""
-    return [json.loads(p.read_text()) for p in sorted((out / "cells").glob("*/result.json"))]
+    return [json.loads(p.read_text()) for p in sorted((out / "cells").glob("*/result.json"))
+            if not p.parent.name.startswith(".")]  # not a cell being written or replaced
 
 
 def write_tables(out: Path) -> None:
-    """``results.csv`` and ``results.sqlite`` (table ``cells``) from the finished cells, atomically."""
+    """``results.csv`` and ``results.sqlite`` (table ``cells``) from the finished cells, put in
+    place together."""
     import csv
     import io
 
@@ -259,11 +281,14 @@ def write_tables(out: Path) -> None:
     w = csv.DictWriter(buf, fieldnames=COLUMNS, lineterminator="\n")
     w.writeheader()
     w.writerows(rows)
-    atomic_write_bytes(out / "results.csv", buf.getvalue().encode("utf-8"))
-    tmp = out / f".results.sqlite.{time.time_ns()}"
-    with sqlite3.connect(tmp) as db:
-        db.execute(f"CREATE TABLE cells ({', '.join(COLUMNS)})")
-        db.executemany(f"INSERT INTO cells VALUES ({', '.join('?' * len(COLUMNS))})",
-                       [[r.get(c) for c in COLUMNS] for r in rows])
-    db.close()
-    tmp.replace(out / "results.sqlite")
+    with Commit() as commit:
+        commit.write(out / "results.csv", buf.getvalue().encode("utf-8"))
+        db = sqlite3.connect(commit.file(out / "results.sqlite"))
+        try:
+            with db:
+                db.execute(f"CREATE TABLE cells ({', '.join(COLUMNS)})")
+                db.executemany(f"INSERT INTO cells VALUES ({', '.join('?' * len(COLUMNS))})",
+                               [[r.get(c) for c in COLUMNS] for r in rows])
+        finally:
+            db.close()
+        commit.commit()

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from ..config import PRESETS
+from . import add_overwrite
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -20,17 +21,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     d = bench.add_parser("dataset", help="write a dataset and its manifest.csv")
     d.add_argument("kind", choices=["openbone", "closedbone", "simsweep", "pairs"])
     d.add_argument("source", type=Path, help="a folder of bone meshes (pairs: of NAME.<cloud> + NAME_gt.<mesh>)")
-    d.add_argument("--out", type=Path, required=True)
+    d.add_argument("--out", type=Path, required=True,
+                   help="a new folder (or an earlier dataset's, replaced as a whole)")
     d.add_argument("--samples", type=int, default=100_000, help="points per open/closed bone")
     d.add_argument("--level", default="hard", help="simsweep: the simulator's noise level")
     d.add_argument("--seeds", default="0", help="simsweep: comma-separated seeds")
     d.add_argument("--quiet", action="store_true")
+    add_overwrite(d, "the --out folder as a whole")
     d.set_defaults(func=run_dataset)
 
     r = bench.add_parser("run", help="run every unfinished cell of an experiment or grid")
     r.add_argument("experiment", nargs="?", default=None, help="E1, E3, E4, E5, E6 or E7 (or none: a grid)")
     r.add_argument("--dataset", type=Path, required=True, help="a manifest.csv")
-    r.add_argument("--out", type=Path, required=True)
+    r.add_argument("--out", type=Path, required=True,
+                   help="a new folder, or one of an earlier run (its finished cells are kept)")
     r.add_argument("--method", dest="methods", action="append", default=[], help="a method (repeatable)")
     r.add_argument("--sweep", dest="sweeps", action="append", default=[], metavar="KEY=V1,V2",
                    help="one grid axis (repeatable: the grid is every combination)")
@@ -58,32 +62,55 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--html", type=Path, default=None, metavar="FILE",
                    help="also write the whole report as one HTML page that opens offline: the tables, "
                         "the CD against a swept setting (e.g. E4's network depth) and each unit's "
-                        "meshes coloured by their distance to the truth")
+                        "meshes coloured by their distance to the truth (and beside it the sidecar "
+                        "FILE.json)")
+    add_overwrite(t, "FILE and its sidecar")
     t.set_defaults(func=run_report)
 
 
 def run_dataset(args: argparse.Namespace) -> int:
-    from ..bench.datasets import make_dataset
     from ..errors import InputError
-    from ..progress import Progress
+    from ..io import check_input, check_output
 
+    check_output(args.out, inputs=(args.source,), overwrite=args.overwrite, kind="folder")
     try:
         seeds = tuple(int(s) for s in args.seeds.split(","))
     except ValueError:
         raise InputError(f"--seeds expects comma-separated integers, got {args.seeds!r}") from None
-    manifest = make_dataset(args.kind, args.source, args.out, samples=args.samples, level=args.level,
+    if args.samples < 100:
+        raise InputError(f"--samples: at least 100 points per bone, got {args.samples}")
+    check_input(args.source, "folder", folder=True)
+    from ..bench.datasets import make_dataset
+    from ..io import record, write_folder_output
+    from ..progress import Progress
+
+    def fill(folder: Path) -> Path:
+        return make_dataset(args.kind, args.source, folder, samples=args.samples, level=args.level,
                             seeds=seeds, progress=Progress(quiet=args.quiet))
-    print(f"bench: wrote {manifest}")
+
+    write_folder_output(args.out, fill, record("bench dataset", kind=args.kind, source=str(args.source.resolve())),
+                        overwrite=args.overwrite)
+    print(f"bench: wrote {args.out / 'manifest.csv'}")
     return 0
 
 
 def run_run(args: argparse.Namespace) -> int:
     from ..bench.manifest import read_manifest
-    from ..bench.runner import plan, run_cells
-    from ..progress import Progress
+    from ..bench.runner import plan
+    from ..errors import InputError
+    from ..io import check_output
 
+    if args.workers < 1 or args.samples < 1:
+        raise InputError(f"--workers and --samples must be at least 1, got {args.workers} and {args.samples}")
+    from ..bench.runner import earlier_run
+
+    if not earlier_run(args.out):
+        check_output(args.out, inputs=(args.dataset,), kind="run")
     cells = plan(read_manifest(args.dataset), args.experiment, args.methods, args.sweeps, args.sets,
                  args.preset, args.seed)
+    from ..bench.runner import run_cells
+    from ..progress import Progress
+
     counts = run_cells(cells, args.out, device=args.device, samples=args.samples,
                        retry_failed=args.retry_failed, workers=args.workers, progress=Progress(quiet=args.quiet),
                        engine=args.engine, address=args.address)
@@ -93,11 +120,17 @@ def run_run(args: argparse.Namespace) -> int:
 
 
 def run_report(args: argparse.Namespace) -> int:
+    from ..io import check_input, check_output, record, write_output
+
+    if args.html is not None:
+        check_output(args.html, overwrite=args.overwrite)
+    check_input(args.folder, "folder", folder=True)
     from ..bench.report import html_report, report
-    from ..io import atomic_write_bytes
 
     sys.stdout.write(report(args.folder, args.format, args.baseline))
     if args.html is not None:
-        atomic_write_bytes(args.html, html_report(args.folder, args.baseline).encode("utf-8"))
+        write_output(args.html, html_report(args.folder, args.baseline).encode("utf-8"),
+                     record("bench report", folder=str(args.folder.resolve()), baseline=args.baseline),
+                     overwrite=args.overwrite)
         print(f"bench report: wrote {args.html}", file=sys.stderr)
     return 0

@@ -120,17 +120,25 @@ def update_docs(text: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..pipeline import configure
-
     if args.update_docs is not None:
-        path = args.update_docs
-        text = path.read_text(encoding="utf-8")
+        from ..errors import InputError
+        from ..io import atomic_write_bytes, check_input
+
+        path = check_input(args.update_docs, "file")
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            raise InputError(f"{path}: not a text file (cannot decode as UTF-8)") from None
+        if not BLOCK.search(text):
+            raise InputError(f"{path}: no generated table (<!-- config … --> … <!-- end config -->) to rewrite")
         new = update_docs(text)
-        if new != text:
-            path.write_text(new, encoding="utf-8")
+        if new != text:  # the page's own generated tables, rewritten whole or not at all
+            atomic_write_bytes(path, new.encode("utf-8"))
         state = "rewritten" if new != text else "up to date"
         print(f"config: {path}: {len(BLOCK.findall(text))} tables {state}")
         return 0
+    from ..pipeline import configure
+
     cfg, _ = configure(args.preset, args.method, None, None, args.assignments)
     if args.json:
         print(json.dumps(cfg.to_dict(), indent=2))

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from ..errors import InputError
+from . import add_overwrite
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -30,17 +31,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"],
                    help="nearest-neighbour search: cpu (multi-threaded KD-tree, default), cuda (GPU grid), auto")
     p.add_argument("--json", metavar="OUT", help="write the metrics as JSON with the keys cd_mm, hd95_mm, "
-                   "d_rg_mean_mm, d_gr_mean_mm, hd95_rg_mm, hd95_gr_mm, samples, pseudo_gt_mm")
+                   "d_rg_mean_mm, d_gr_mean_mm, hd95_rg_mm, hd95_gr_mm, samples, pseudo_gt_mm (and "
+                   "beside it the sidecar OUT.json: which meshes, samples and seed)")
+    add_overwrite(p, "OUT and its sidecar")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..evaluation.cmd_support import load_optional_mesh
-    from ..evaluation.metrics import evaluate
-    from ..extraction.quality import mesh_quality
-    from ..io import load_mesh, load_points, save_json
-    from ..progress import Progress
+    import json
+
+    from ..io import check_input, check_output, load_mesh, load_points, read_mesh, record, sha256_file, write_output
 
     if args.samples < 1:
         raise InputError(f"--samples: must be at least 1, got {args.samples}")
@@ -48,14 +49,26 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--pseudo-gt-mm needs --points (the raw ultrasound cloud to filter by)")
     if args.pseudo_gt_mm is not None and not args.pseudo_gt_mm >= 0:
         raise InputError(f"--pseudo-gt-mm: must be ≥ 0 mm, got {args.pseudo_gt_mm}")
-    recon = load_optional_mesh(args.recon)
+    inputs = [p for p in (args.recon, args.gt, args.points) if p]
+    if args.json:
+        check_output(args.json, inputs=inputs, overwrite=args.overwrite)
+    for given in inputs:
+        check_input(given, "file")
+    recon = read_mesh(args.recon)
     gt = load_mesh(args.gt)
     raw = load_points(args.points) if args.points else None
+    from ..evaluation.metrics import evaluate
+    from ..extraction.quality import mesh_quality
+    from ..progress import Progress
+
     progress = Progress(quiet=args.quiet)
     result = evaluate(recon, gt, raw_points=raw, pseudo_gt_mm=args.pseudo_gt_mm, samples=args.samples,
                       seed=args.seed, device=args.device, progress=progress, gt_source=str(args.gt))
     if args.json:
-        save_json(result.to_json(), args.json)
+        meta = record("evaluate", inputs={str(p): sha256_file(p) for p in inputs}, samples=args.samples,
+                      seed=args.seed, pseudo_gt_mm=result.pseudo_gt_mm)
+        write_output(args.json, (json.dumps(result.to_json(), indent=2) + "\n").encode("utf-8"), meta,
+                     overwrite=args.overwrite)
     tau = "whole ground truth" if result.pseudo_gt_mm is None else f"pseudo-GT τ = {result.pseudo_gt_mm:g} mm"
     if result.failed:
         print(f"ultraboneudf evaluate: {args.recon}: {result.reason}: counted as a failure (no metrics)",

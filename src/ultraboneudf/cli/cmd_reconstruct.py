@@ -10,7 +10,9 @@ from typing import TYPE_CHECKING
 from ..config import DEFAULT_PRESET, PRESET_HELP, PRESETS, UNITS_MM
 from ..errors import InputError
 from ..methods import NAMES
-from .sweep_input import add_sweep_options, sweep_options_given, sweep_points
+from . import add_overwrite
+from .sweep_input import (add_sweep_options, check_sweep_options, read_options, sweep_inputs, sweep_options_given,
+                          sweep_points)
 
 if TYPE_CHECKING:
     import numpy as np
@@ -67,6 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue from OUT.ckpt when it exists (same input, preset, --set and seed; "
                         "the same result as an uninterrupted run)")
+    add_overwrite(p, "OUT, its sidecar and OUT.ckpt")
     add_sweep_options(p)
     p.set_defaults(func=run)
 
@@ -76,21 +79,26 @@ def checkpoint_path(output: Path) -> Path:
     return output.with_name(output.name + ".ckpt")
 
 
-def read_input(path: Path, args: argparse.Namespace, progress: Progress
-               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict | None]:
-    """Points (mm) from a cloud file, or compounded from a sweep (a folder or a sequence file); for
-    a sweep, or a cloud ``sweep2points`` wrote with them, also the probe position of each point (mm,
-    same frame) and its frame index; for a sweep what it gave (pose chain, spacing, shear,
-    segmentation; for the sidecar). ``None`` for each the input lacks."""
-    from ..io import load_points, load_sweep_columns
-    from ..sweep import is_sweep_path
+def check_config(args: argparse.Namespace, overrides: dict) -> dict:
+    """The ``--set`` values checked before PyTorch loads: every key, type and choice; for the
+    default method (whose configuration is the preset's) every range too. The other methods'
+    ranges are checked once their defaults are known (:func:`~ultraboneudf.pipeline.configure`).
+    Returns the configuration so far as a dict (the preset with the user's values)."""
+    from ..config import apply_overrides, preset, validate
 
-    if path.exists() and is_sweep_path(path):
-        if args.units != "mm":
-            raise InputError(f"{path}: --units applies to point cloud files; a sweep's geometry comes "
-                             f"from its calibration (mm)")
-        res = sweep_points(path, args, progress)
-        return res.points.points, res.points.probe_position, res.points.frame_index, res.info
+    cfg = apply_overrides(preset(args.preset), overrides, args.assignments)
+    if args.method == "ultraboneudf":
+        validate(cfg)
+    return cfg.to_dict()
+
+
+def read_points(path: Path, args: argparse.Namespace
+                ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Points (mm) of a cloud file and, from a cloud ``sweep2points`` wrote, the probe position of
+    each point (mm, same frame) and its frame index (``None`` where the file has none); refused
+    (:class:`InputError`) when the coordinates cannot be millimetres."""
+    from ..io import check_units, load_points, load_sweep_columns
+
     given = sweep_options_given(args)
     if given:
         raise InputError(f"{path}: {', '.join(given)} {'apply' if len(given) > 1 else 'applies'} to "
@@ -98,28 +106,66 @@ def read_input(path: Path, args: argparse.Namespace, progress: Progress
     points = load_points(path)
     probe, frames = load_sweep_columns(path, len(points))
     scale = UNITS_MM[args.units]
-    return points * scale, None if probe is None else probe * scale, frames, None
+    points = points * scale
+    check_units(points, str(path))
+    return points, None if probe is None else probe * scale, frames
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..checkpoints import Checkpoint
-    from ..io import check_outputs, sha256_file
+    from .. import checkpoints
+    from ..io import check_input, check_output, check_outputs, sha256_file
+
+    # every check first, none of them needs PyTorch: outputs, options, the input, the checkpoint
+    inputs = (args.input, *sweep_inputs(args))
+    output = check_outputs(args.output, inputs, overwrite=args.overwrite)
+    checkpointing = args.checkpoint_every is not None or args.resume
+    if checkpointing:
+        ckpt = checkpoint_path(output)
+        if ckpt.is_dir():
+            raise InputError(f"{ckpt}: is a folder; the training checkpoint needs that name (move it, "
+                             f"or choose another output name)")
+        check_output(ckpt, inputs=inputs, kind="bare")  # its name and place; its owner below
+    check_input(args.input, "file", folder=True)
+    overrides = {} if args.iters is None else {"train.iters": args.iters}
+    config = check_config(args, overrides)
+    if args.input.is_dir() or args.input.suffix.lower() in SWEEP_SUFFIXES:
+        if args.units != "mm":
+            raise InputError(f"{args.input}: --units applies to point cloud files; a sweep's geometry comes "
+                             f"from its calibration (mm)")
+        read_options(args, args.input)
+        check_sweep_options(args.input, args)
+        cloud = None
+    else:
+        cloud = read_points(args.input, args)
+    input_sha = sha256_file(args.input)
+    checkpoint = None
+    if checkpointing:
+        key = checkpoints.run_key(input_sha, config, args.method, args.seed, preset=args.preset, units=args.units,
+                                  sweep={k: str(v) for k, v in sorted(vars(args).items()) if k in _SWEEP_KEYS})
+        checkpoint = checkpoints.Checkpoint(checkpoint_path(output), every=args.checkpoint_every or 0,
+                                            resume=args.resume, run=key)
+        checkpoints.check(checkpoint, overwrite=args.overwrite)
+    return _run(args, output, overrides, cloud, checkpoint, input_sha)
+
+
+def _run(args: argparse.Namespace, output: Path, overrides: dict, cloud, checkpoint, input_sha: str) -> int:
+    from ..io import save_mesh_with_sidecar
     from ..pipeline import configure, reconstruct
     from ..progress import Progress
 
-    output = check_outputs(args.output, (args.input,))  # before any work: never lose the user's data
-    overrides = {} if args.iters is None else {"train.iters": args.iters}
-    _, entry = configure(args.preset, args.method, None, overrides, args.assignments)  # before reading
+    _, entry = configure(args.preset, args.method, None, overrides, args.assignments)
+    if checkpoint is not None and not entry.takes_checkpoint:
+        raise InputError(f"--method {args.method} cannot checkpoint its training; drop "
+                         f"--checkpoint-every/--resume")
     progress = Progress(quiet=args.quiet)
-    checkpoint = None
-    if args.checkpoint_every is not None or args.resume:
-        if not entry.takes_checkpoint:
-            raise InputError(f"--method {args.method} cannot checkpoint its training; drop "
-                             f"--checkpoint-every/--resume")
-        checkpoint = Checkpoint(checkpoint_path(output), every=args.checkpoint_every or 0, resume=args.resume)
-        if args.resume and not checkpoint.path.exists():
-            progress.log(f"no checkpoint {checkpoint.path} yet: training starts at step 0")
-    points, probe, frames, sweep_info = read_input(args.input, args, progress)
+    if checkpoint is not None and args.resume and not checkpoint.path.exists():
+        progress.log(f"no checkpoint {checkpoint.path} yet: training starts at step 0")
+    if cloud is None:
+        res = sweep_points(args.input, args, progress)
+        points, probe, frames, sweep_info = (res.points.points, res.points.probe_position,
+                                             res.points.frame_index, res.info)
+    else:
+        (points, probe, frames), sweep_info = cloud, None
     rec = reconstruct(points, preset=args.preset, device=args.device, seed=args.seed, method=args.method,
                       assignments=args.assignments, progress=progress, source=str(args.input),
                       probe_positions=probe, frame_index=frames, checkpoint=checkpoint, **overrides)
@@ -127,14 +173,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"ultraboneudf reconstruct: no surface was found in {args.input}; nothing written "
               "(see the loss history with --set train.iters=… or try another preset)", file=sys.stderr)
         return 1
-    rec.input.update(path=str(args.input.resolve()), sha256=sha256_file(args.input), units=args.units)
+    rec.input.update(path=str(args.input.resolve()), sha256=input_sha, units=args.units)
     if sweep_info is not None:
         rec.input["sweep"] = sweep_info
     elif probe is not None:  # a cloud file that carries its sweep's columns
         rec.input["sweep_columns"] = ["probe"] + ([] if frames is None else ["frame"])
-    sidecar = rec.save(output)
-    if checkpoint is not None:
-        checkpoint.path.unlink(missing_ok=True)  # the run is complete: nothing left to resume
+    # the mesh, its sidecar and the end of the checkpoint, as a unit
+    sidecar = save_mesh_with_sidecar(rec.mesh, output, rec.sidecar(), overwrite=args.overwrite,
+                                     remove=[checkpoint.path] if checkpoint is not None else [])
     t = rec.timings
     progress.log(f"wrote {output} ({rec.counts['vertices']} vertices, {rec.counts['faces']} faces) and "
                  f"{sidecar}; {t['total_s']:.1f} s (preprocess {t['preprocess_s']:.1f}, "
@@ -142,3 +188,11 @@ def run(args: argparse.Namespace) -> int:
     for warning in rec.fit_warnings(cli=True):  # shown even with --quiet: they concern the result
         print(f"ultraboneudf reconstruct: warning: {warning}", file=sys.stderr)
     return 0
+
+
+SWEEP_SUFFIXES = (".mha", ".mhd", ".nrrd", ".nhdr")
+"""Sequence files read as a sweep (as :func:`~ultraboneudf.sweep.is_sweep_path` tells; a folder is one too)."""
+
+_SWEEP_KEYS = ("calibration", "transform", "reference", "image_frame", "transforms", "segment", "masks",
+               "mask_dir", "detector", "no_consistency", "threshold", "no_align_frames")
+"""The options that change the points a sweep gives (part of a checkpoint's run key)."""

@@ -4,12 +4,15 @@ frame, from any start."""
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import Any
 
 from ..config import DEFAULT_PRESET, PRESETS, UNITS_MM
 from ..errors import InputError
+from ..io.outputs import check_output
+from . import add_overwrite
 from .sweep_input import add_sweep_options, sweep_options_given
 
 LOW_CONFIDENCE = 0.1
@@ -55,6 +58,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=-1,
                    help="threads of the nearest-neighbour searches (default: all cores)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    add_overwrite(p, "T.json, the pictures and --mesh")
     g = p.add_argument_group("a tracked sweep as TARGET")
     g.add_argument("--no-reconstruct", action="store_true",
                    help="register to the sweep's compounded points instead of its reconstruction")
@@ -69,18 +73,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _check_figure(path: Path | None, suffixes: tuple[str, ...], option: str, inputs: tuple[Path, ...],
-                  taken: list[Path]) -> None:
+                  taken: list[Path], overwrite: bool) -> None:
     if path is None:
         return
     if path.suffix.lower() not in suffixes:
         raise InputError(f"{path}: {option} writes {' or '.join(suffixes)}")
     if any(path.resolve() == t.resolve() for t in taken):
         raise InputError(f"{path}: named for two outputs")
-    for given in inputs:
-        if given.exists() and path.exists() and path.samefile(given):
-            raise InputError(f"{path}: is an input; the input is never overwritten, choose another name")
-        if given.is_dir() and path.resolve().is_relative_to(given.resolve()):
-            raise InputError(f"{path}: inside the input folder {given}; write it elsewhere")
+    check_output(path, inputs=inputs, overwrite=overwrite)
     taken.append(path)
 
 
@@ -89,7 +89,8 @@ def _read_target(args: argparse.Namespace, progress) -> tuple[Any, dict[str, Any
     from ..io import sha256_file
     from ..registration.solve import mesh_file
     from ..sweep import is_sweep_path
-    from .cmd_reconstruct import read_input
+    from .cmd_reconstruct import read_points
+    from .sweep_input import sweep_points
 
     path: Path = args.target
     record: dict[str, Any] = {"path": str(path.resolve()) if path.exists() else str(path)}
@@ -108,7 +109,15 @@ def _read_target(args: argparse.Namespace, progress) -> tuple[Any, dict[str, Any
                 raise InputError(f"{path}: --units applies to point cloud files; a mesh is read in mm")
             record.update(kind="mesh", sha256=sha256_file(path))
             return mesh, record
-    points, probe, frames, sweep_info = read_input(path, args, progress)
+    if sweep:
+        if args.units != "mm":
+            raise InputError(f"{path}: --units applies to point cloud files; a sweep's geometry comes "
+                             f"from its calibration (mm)")
+        res = sweep_points(path, args, progress)
+        points, probe, frames, sweep_info = (res.points.points, res.points.probe_position,
+                                             res.points.frame_index, res.info)
+    else:
+        (points, probe, frames), sweep_info = read_points(path, args), None
     record.update(sha256=sha256_file(path), units=args.units)
     if not sweep:
         record["kind"] = "points"
@@ -126,9 +135,11 @@ def _read_target(args: argparse.Namespace, progress) -> tuple[Any, dict[str, Any
         raise InputError(f"{path}: the reconstruction found no surface; register to its points with "
                          f"--no-reconstruct, or reconstruct it yourself and pass the mesh")
     rec.input.update(path=record["path"], sha256=record["sha256"], sweep=sweep_info)
-    if args.mesh is not None:
-        rec.save(args.mesh)
     side = rec.sidecar()
+    if args.mesh is not None:
+        from ..io import save_mesh_with_sidecar
+
+        save_mesh_with_sidecar(rec.mesh, args.mesh, side, overwrite=args.overwrite)
     record.update(kind="sweep reconstruction", reconstruction={
         k: side[k] for k in ("method", "preset", "config", "seed", "device", "version", "counts", "timings")})
     if args.mesh is not None:
@@ -137,19 +148,22 @@ def _read_target(args: argparse.Namespace, progress) -> tuple[Any, dict[str, Any
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..io import atomic_write_bytes, check_json_output, check_outputs, load_mesh, sha256_file
+    from ..io import check_outputs, load_mesh, sha256_file
+    from ..io.outputs import record as output_record, write_outputs
     from ..progress import Progress
-    from ..registration import KIND, read_init
+    from ..registration import read_init
     from ..registration.options import RegisterOptions, with_overrides
     from ..registration.solve import register as solve
 
     inputs = tuple(p for p in (args.ct, args.target, args.init) if p is not None)
-    output = check_json_output(args.output, inputs, KIND)      # before any work
+    if args.output.suffix.lower() != ".json":
+        raise InputError(f"{args.output}: the output must be a .json file")
+    output = check_output(args.output, inputs=inputs, overwrite=args.overwrite)      # before any work
     taken = [output]
-    _check_figure(args.png, (".png",), "--png", inputs, taken)
-    _check_figure(args.html, (".html", ".htm"), "--html", inputs, taken)
+    _check_figure(args.png, (".png",), "--png", inputs, taken, args.overwrite)
+    _check_figure(args.html, (".html", ".htm"), "--html", inputs, taken, args.overwrite)
     if args.mesh is not None:
-        check_outputs(args.mesh, inputs)
+        check_outputs(args.mesh, inputs, overwrite=args.overwrite)
     if args.threads == 0 or args.threads < -1:
         raise InputError(f"--threads: a positive number or -1 (all cores), got {args.threads}")
     values = {}
@@ -179,10 +193,10 @@ def run(args: argparse.Namespace) -> int:
             figures.append((args.png, registration_png(ct, reg, points)))
         if args.html is not None:
             figures.append((args.html, registration_html(ct, reg, points)))
-    for path, data in figures:
-        atomic_write_bytes(path, data)
-    reg.save(output)
     t = reg.to_json()
+    meta = output_record("register", inputs={str(p): sha256_file(p) for p in inputs if p.is_file()})
+    write_outputs([(output, (json.dumps(t, indent=2) + "\n").encode("utf-8"), meta),
+                   *[(path, data, meta) for path, data in figures]], overwrite=args.overwrite)
     conf = "none (given --init)" if reg.confidence is None else f"{reg.confidence:.2f}"
     progress.log(f"wrote {output}" + "".join(f", {p}" for p, _ in figures))
     print(f"register: rotation {t['rotation_deg']:.2f}°, translation {t['translation_mm']} mm (CT → target); "

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import InputError
+from . import add_overwrite
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -35,14 +36,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--show-gt", action="store_true", help="grid: add a grey ground-truth column")
     p.add_argument("--title", default=None, help="title (PNG of one mesh, HTML)")
     p.add_argument("--seed", type=int, default=0, help="seed of the ground-truth sampling (default 0)")
+    add_overwrite(p, "OUT and its sidecar OUT.json")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..evaluation.cmd_support import load_optional_mesh
-    from ..evaluation.render import parse_view, reference_points, render_distance_png, render_grid_png
-    from ..evaluation.viewer import write_viewer
-    from ..io import load_mesh, load_points
+    from ..io import check_input, check_output, load_points, read_mesh, record, sha256_file, write_output
 
     out = Path(args.out)
     kind = out.suffix.lower()
@@ -50,44 +49,60 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"{out}: unknown output type {out.suffix!r}; use .png or .html")
     if kind != ".png" and len(args.meshes) > 1:
         raise InputError(f"{out}: the HTML viewer shows one mesh; give one MESH or write a .png grid")
-    if args.vmax <= 0:
+    if not args.vmax > 0:
         raise InputError(f"--vmax: must be > 0 mm, got {args.vmax}")
     if args.pseudo_gt_mm is not None and not args.points:
         raise InputError("--pseudo-gt-mm needs --points (the raw ultrasound cloud)")
+    if args.pseudo_gt_mm is not None and not args.pseudo_gt_mm >= 0:
+        raise InputError(f"--pseudo-gt-mm: must be ≥ 0 mm, got {args.pseudo_gt_mm}")
     if args.colour_samples < 1:
         raise InputError(f"--colour-samples: must be at least 1, got {args.colour_samples}")
+    if args.tile_height is not None and not 16 <= args.tile_height <= 8192:
+        raise InputError(f"--tile-height: between 16 and 8192 pixels, got {args.tile_height}")
     labels = [s.strip() for s in args.labels.split(",")] if args.labels else [Path(m).stem for m in args.meshes]
     if len(labels) != len(args.meshes):
         raise InputError(f"--labels: {len(labels)} labels for {len(args.meshes)} meshes")
-    views = [parse_view(v) for v in args.views.split(",")] if args.views else None
-    meshes = [load_optional_mesh(m) for m in args.meshes]
-    gt = load_mesh(args.gt) if args.gt else None
-    raw = load_points(args.points) if args.points else None
-    if raw is not None and gt is None and kind == ".png":
+    if args.points and not args.gt and kind == ".png":
         raise InputError("--points colours by the pseudo ground truth and needs --gt")
+    inputs = [*args.meshes, *(p for p in (args.gt, args.points) if p)]
+    check_output(out, inputs=inputs, overwrite=args.overwrite)
+    for given in inputs:
+        check_input(given, "file")
+    from ..evaluation.render import parse_view
+
+    views = [parse_view(v) for v in args.views.split(",")] if args.views else None
+    meshes = [read_mesh(m) for m in args.meshes]
+    gt = read_mesh(args.gt) if args.gt else None
+    if args.gt and gt is None:
+        raise InputError(f"{args.gt}: holds no triangles")
+    raw = load_points(args.points) if args.points else None
+    if kind == ".png" and len(meshes) == 1 and meshes[0] is None:
+        raise InputError(f"{args.meshes[0]}: holds no triangles; nothing to render")
+    if kind != ".png" and meshes[0] is None:
+        raise InputError(f"{args.meshes[0]}: holds no triangles; nothing to show")
+    data = _draw(args, kind, meshes, labels, views, gt, raw)
+    meta = record("render", inputs={str(p): sha256_file(p) for p in inputs},
+                  options={k: str(v) for k, v in sorted(vars(args).items()) if k not in ("func", "out")})
+    write_output(out, data, meta, overwrite=args.overwrite)
+    print(out)
+    return 0
+
+
+def _draw(args, kind, meshes, labels, views, gt, raw) -> bytes:
+    """The picture's (PNG) or the viewer's (HTML) bytes."""
+    from ..evaluation.render import (png_bytes, reference_points, render_distance_image,
+                                      render_grid_image)
+    from ..evaluation.viewer import viewer_html
+
     reference = None
     if gt is not None:
         reference = reference_points(gt, raw, args.pseudo_gt_mm, args.colour_samples, args.seed)
+    kwargs = {"vmax": args.vmax, **({"views": views} if views else {}),
+              **({"tile_height": args.tile_height} if args.tile_height else {})}
     if kind == ".png" and len(meshes) == 1:
-        if meshes[0] is None:
-            raise InputError(f"{args.meshes[0]}: holds no triangles; nothing to render")
-        kwargs = {"title": args.title, "vmax": args.vmax}
-        if views:
-            kwargs["views"] = views
-        if args.tile_height:
-            kwargs["tile_height"] = args.tile_height
-        render_distance_png(out, meshes[0], reference, **kwargs)
-    elif kind == ".png":
-        kwargs = {"vmax": args.vmax, "ground_truth": gt if args.show_gt else None}
-        if views:
-            kwargs["views"] = views
-        if args.tile_height:
-            kwargs["tile_height"] = args.tile_height
-        render_grid_png(out, dict(zip(labels, meshes)), reference, **kwargs)
-    else:
-        if meshes[0] is None:
-            raise InputError(f"{args.meshes[0]}: holds no triangles; nothing to show")
-        write_viewer(out, meshes[0], reference=reference, ground_truth=gt, points=raw,
-                     title=args.title or labels[0], vmax=args.vmax)
-    print(out)
-    return 0
+        return png_bytes(render_distance_image(meshes[0], reference, title=args.title, **kwargs))
+    if kind == ".png":
+        return png_bytes(render_grid_image(dict(zip(labels, meshes)), reference,
+                                           ground_truth=gt if args.show_gt else None, **kwargs))
+    return viewer_html(meshes[0], reference=reference, ground_truth=gt, points=raw,
+                       title=args.title or labels[0], vmax=args.vmax).encode("utf-8")

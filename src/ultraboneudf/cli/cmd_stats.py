@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..errors import InputError
+from . import add_overwrite
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -27,14 +28,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--k", type=int, default=None, help="Bonferroni factor (default: number of competitors)")
     p.add_argument("--format", default="md", choices=["md", "csv", "latex"], help="table format (default md)")
     p.add_argument("--decimals", type=int, default=2, help="decimals of the mm tables (default 2)")
-    p.add_argument("-o", "--out", metavar="FILE", help="write the tables to FILE instead of stdout")
+    p.add_argument("-o", "--out", metavar="FILE", help="write the tables to FILE instead of stdout (and "
+                                                       "beside it the sidecar FILE.json)")
+    add_overwrite(p, "FILE and its sidecar")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..io import check_input, check_output, record, sha256_file, write_output
+
+    if args.out:
+        check_output(args.out, inputs=[args.results], overwrite=args.overwrite)
+    check_input(args.results, "file")
+    if args.decimals < 0 or args.decimals > 12:
+        raise InputError(f"--decimals: between 0 and 12, got {args.decimals}")
     from ..evaluation.stats import compare_to_baseline, read_results_csv
     from ..evaluation.tables import comparisons_table, format_table, results_table
-    from ..io import atomic_write_bytes
 
     records = read_results_csv(args.results)
     methods = [m.strip() for m in args.methods.split(",")] if args.methods else None
@@ -59,7 +68,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"{args.results}: no metric values (all reconstructions failed?)")
     output = "\n".join(parts)
     if args.out:
-        atomic_write_bytes(args.out, output.encode("utf-8"))
+        meta = record("stats", inputs={str(args.results): sha256_file(args.results)},
+                      options={k: str(v) for k, v in sorted(vars(args).items()) if k not in ("func", "out")})
+        write_output(args.out, output.encode("utf-8"), meta, overwrite=args.overwrite)
         print(args.out)
     else:
         print(output, end="")

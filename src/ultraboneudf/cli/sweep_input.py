@@ -74,6 +74,111 @@ def parse_kv(items: list[str], option: str = "--detector") -> dict[str, float]:
     return out
 
 
+def sweep_inputs(args: argparse.Namespace) -> list[Path]:
+    """The files the sweep options name (the outputs must not replace them)."""
+    named = [getattr(args, "calibration", None), getattr(args, "masks", None),
+             *(getattr(args, "transforms", None) or [])]
+    segment = getattr(args, "segment", "auto")
+    if segment not in ("auto", "masks", "classical"):
+        named.append(Path(segment))
+    return [Path(p) for p in named if p is not None]
+
+
+def check_sweep_options(path: Path, args: argparse.Namespace) -> None:
+    """Refuse, before a frame is read, what the sweep options get wrong: a file they name that is
+    missing or not a regular file, an unknown ``--detector`` key or a value it cannot take, a
+    ``--segment`` model that is not one, ``--masks`` with another number of frames than the sweep
+    (:class:`InputError`, one line naming it). Loading a TorchScript model imports PyTorch."""
+    from ..io import check_input
+
+    if getattr(args, "calibration", None) is not None:
+        check_input(args.calibration, "calibration file")
+    for item in getattr(args, "transforms", None) or []:
+        check_input(item, "transform sequence file")
+    detector = parse_kv(args.detector)
+    if detector:
+        from ..sweep.segment import BoneDetector
+
+        try:
+            BoneDetector.from_options(detector)
+        except (TypeError, ValueError) as exc:
+            if isinstance(exc, InputError):
+                raise InputError(f"--detector: {exc}") from None
+            raise InputError(f"--detector {', '.join(args.detector)}: {exc}") from None
+        if args.segment not in ("auto", "classical"):
+            raise InputError(f"--detector applies to the classical detector, not --segment {args.segment}")
+    if args.segment not in ("auto", "masks", "classical"):
+        from ..sweep.learned import LearnedSegmenter, is_model_path
+
+        model = check_input(args.segment, "model file")
+        if not is_model_path(str(model)):
+            raise InputError(f"--segment {model}: use auto, masks, classical or the path of a TorchScript "
+                             f"(.pt) or ONNX (.onnx) model file")
+        LearnedSegmenter(model, threshold=args.threshold)  # a file that is not a model fails here
+    if args.masks is not None:
+        _check_mask_count(path, check_input(args.masks, "mask file or folder", folder=True))
+
+
+def _check_mask_count(path: Path, masks: Path) -> None:
+    """``--masks`` against the frames the sweep's poses (UltraBones100k) or header (MetaIO)
+    declare; other layouts, and MetaIO files with frames marked invalid, are checked once read."""
+    from ..sweep import detect_layout
+    from ..sweep.formats.images import IMAGE_SUFFIXES
+
+    layout = detect_layout(path)
+    stems = None
+    if layout == "ultrabones":
+        from ..sweep.formats.ultrabones import _read_poses
+
+        stems = _read_poses(path / "poses.csv")[0]
+        frames = len(stems)
+    elif layout == "metaio":
+        from ..sweep.formats.metaio import read_header
+
+        fields, _ = read_header(path)
+        if any(v.strip().upper() == "INVALID" for k, v in fields.items() if k.endswith("Status")):
+            return
+        try:
+            frames = int(fields.get("DimSize", "").split()[2])
+        except (IndexError, ValueError):
+            return
+    else:
+        return
+    if masks.is_dir():
+        found = [p for p in masks.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES]
+        if stems is not None and {str(s) for s in stems} <= {p.stem for p in found}:
+            return  # matched by name
+        count = len(found)
+    elif masks.suffix.lower() in (".npy", ".npz"):
+        count = _mask_array_frames(masks)
+        if count is None:
+            return
+    else:
+        raise InputError(f"{masks}: masks must be a folder of images, .npy or .npz")
+    if count != frames:
+        raise InputError(f"{masks}: {count} masks for the {frames} frames of {path.name}")
+
+
+def _mask_array_frames(masks: Path) -> int | None:
+    """Frames of a ``.npy`` (or the ``masks`` array of an ``.npz``) mask stack, from its header."""
+    import zipfile
+
+    def rows(fh) -> int | None:
+        version = np.lib.format.read_magic(fh)
+        shape = (np.lib.format.read_array_header_1_0(fh) if version == (1, 0)
+                 else np.lib.format.read_array_header_2_0(fh))[0]
+        return int(shape[0]) if len(shape) == 3 else None
+
+    try:
+        if masks.suffix.lower() == ".npy":
+            with open(masks, "rb") as fh:
+                return rows(fh)
+        with zipfile.ZipFile(masks) as archive, archive.open("masks.npy") as fh:
+            return rows(fh)
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        return None  # the reader names what is wrong with it
+
+
 def sweep_options_given(args: argparse.Namespace) -> list[str]:
     """The sweep options set on the command line (to reject them for a point cloud input)."""
     given = [name for name in CHAIN_OPTIONS if getattr(args, name, None)]

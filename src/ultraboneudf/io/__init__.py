@@ -1,21 +1,36 @@
-"""Reading point clouds and meshes, writing meshes, points and JSON atomically, validating input.
+"""Reading point clouds and meshes, writing outputs whole or not at all, validating input.
 
 Point clouds are in millimetres, as ``(N, 3)`` float64 arrays. Readers are chosen by extension
 (:data:`POINT_READERS`); every problem with a file is an :class:`~ultraboneudf.errors.InputError`
-whose message names the file. Writers never leave a half-written file: they write a temporary file
-beside the target and rename it.
+whose message names the file. Outputs follow one contract (:mod:`.outputs`): never an input, never a
+file this package did not write, every result put in place as a unit (:mod:`.commit`).
+
+The names below are imported on first use: checking a file before any work loads neither trimesh
+nor PyTorch.
 """
 
-from .files import atomic_write_bytes, save_json, sha256_file, sigterm_raises, write_temp
-from .meshes import MESH_SUFFIXES, check_mesh_path, load_mesh, save_mesh
-from .points import (MAX_COORDINATE_MM, MAX_PLY_VERTICES, MIN_POINTS, PLAUSIBLE_EXTENT_MM, POINT_READERS,
-                     POINT_SUFFIXES, check_units, encode_points, load_points, load_sweep_columns,
-                     validate_points)
-from .sidecar import (FREE_SPACE_BYTES, check_json_output, check_outputs, legacy_sidecar, read_sidecar,
-                      save_mesh_with_sidecar, sidecar_path)
+from .._lazy import lazy_getattr
 
-__all__ = ["FREE_SPACE_BYTES", "MAX_COORDINATE_MM", "MAX_PLY_VERTICES", "MESH_SUFFIXES", "MIN_POINTS",
-           "PLAUSIBLE_EXTENT_MM", "POINT_READERS", "POINT_SUFFIXES", "atomic_write_bytes", "check_mesh_path",
-           "check_json_output", "check_outputs", "check_units", "encode_points", "legacy_sidecar", "load_mesh",
-           "load_points", "load_sweep_columns", "read_sidecar", "save_json", "save_mesh", "save_mesh_with_sidecar",
-           "sha256_file", "sidecar_path", "sigterm_raises", "validate_points", "write_temp"]
+_WHERE = {
+    "atomic_write_bytes": "files", "save_json": "files", "sha256_file": "files",
+    "Commit": "commit", "WriteError": "commit", "signals_deferred": "commit",
+    "check_input": "inputs", "available_memory": "inputs",
+    "MESH_SUFFIXES": "meshes", "check_mesh_path": "meshes", "load_mesh": "meshes", "read_mesh": "meshes",
+    "mesh_bytes": "meshes", "save_mesh": "meshes",
+    "MAX_COORDINATE_MM": "points", "MIN_POINTS": "points", "PLAUSIBLE_EXTENT_MM": "points",
+    "POINT_READERS": "points", "POINT_SUFFIXES": "points", "check_units": "points", "encode_points": "points",
+    "load_points": "points", "load_sweep_columns": "points", "validate_points": "points",
+    "MAX_PLY_VERTICES": "ply",
+    "FOLDER_RECORD": "outputs", "FREE_SPACE_BYTES": "outputs", "check_output": "outputs",
+    "legacy_sidecar": "outputs", "read_record": "outputs", "record": "outputs", "sidecar_path": "outputs",
+    "write_folder_output": "outputs", "write_output": "outputs", "write_outputs": "outputs",
+    "check_outputs": "sidecar", "read_sidecar": "sidecar", "save_mesh_with_sidecar": "sidecar",
+}
+
+__all__ = sorted(_WHERE)
+
+__getattr__ = lazy_getattr(__name__, _WHERE, globals())
+
+
+def __dir__() -> list[str]:
+    return __all__

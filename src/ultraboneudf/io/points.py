@@ -10,9 +10,10 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-import trimesh
 
 from ..errors import InputError
+from .inputs import check_fits_memory, check_input
+from .ply import check_ply_length, read_ply_header
 
 MIN_POINTS = 100
 
@@ -81,130 +82,122 @@ def check_units(points: np.ndarray, source: str = "points") -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# point readers
+# point readers: each checks, before it allocates, that the points fit in memory
+
+MAX_TEXT_PROBE = 1 << 20
+"""Bytes read from the start of a text cloud to find its first data line and its line length."""
+_COPIES = 3
+"""Arrays of the cloud's size alive at once while it is read and validated (parsed, float64, check)."""
 
 
-def _first_data_line(lines: list[str]) -> int:
-    for i, line in enumerate(lines):
-        s = line.strip()
-        if s and not s.startswith(("#", "//")):
-            return i
-    return -1
+def _is_data(line: str) -> bool:
+    s = line.strip()
+    return bool(s) and not s.startswith(("#", "//"))
 
 
-def _parse_rows(path: Path, lines: list[str], start: int, delimiter: str | None) -> np.ndarray:
-    """Parse numeric rows (first three columns) line by line; the error names the line number."""
-    rows = []
-    for i in range(start, len(lines)):
-        s = lines[i].strip()
-        if not s or s.startswith(("#", "//")):
-            continue
-        parts = [p for p in (s.split(delimiter) if delimiter else s.split()) if p.strip() != ""]
-        if len(parts) < 3:
-            raise InputError(f"{path}: line {i + 1}: expected at least 3 numbers, got {len(parts)}: "
-                             f"{s[:60]!r}")
-        try:
-            rows.append((float(parts[0]), float(parts[1]), float(parts[2])))
-        except ValueError:
-            raise InputError(f"{path}: line {i + 1}: cannot parse numbers from {s[:60]!r}") from None
-    return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
-
-
-def _read_text(path: Path) -> list[str]:
+def _text_start(path: Path) -> tuple[int, str, int]:
+    """``(line number of the first data line (0-based), that line, estimated data lines)`` from the
+    file's first :data:`MAX_TEXT_PROBE` bytes, before the whole is read."""
+    with open(path, "rb") as fh:
+        head = fh.read(MAX_TEXT_PROBE)
     try:
-        return path.read_text(encoding="utf-8", errors="strict").splitlines()
+        text = head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        if exc.start < len(head) - 4:  # not a character cut at the end of the probe
+            raise InputError(f"{path}: not a text file (cannot decode as UTF-8)") from None
+        text = head[:exc.start].decode("utf-8")
+    lines = text.splitlines()
+    if len(head) == MAX_TEXT_PROBE and lines:
+        lines = lines[:-1]  # the last line of the probe may be cut
+    start = next((i for i, line in enumerate(lines) if _is_data(line)), -1)
+    if start < 0:
+        if len(head) < MAX_TEXT_PROBE:
+            raise InputError(f"{path}: contains no points")
+        raise InputError(f"{path}: no point in its first {MAX_TEXT_PROBE >> 20} MiB; not a point cloud")
+    data = [line for line in lines[start:] if _is_data(line)]
+    per_line = max(1.0, sum(len(line) + 1 for line in data) / len(data))
+    return start, lines[start], int(path.stat().st_size / per_line) + 1
+
+
+def _check_rows(path: Path, rows: int, what: str) -> None:
+    check_fits_memory(path, rows * 3 * 8 * _COPIES, f"its {rows:,} {what}")
+
+
+def _text_lines(path: Path):
+    """``(line number, stripped line)`` of every data line, read as the file is, not whole."""
+    try:
+        with open(path, encoding="utf-8", errors="strict") as fh:
+            for i, line in enumerate(fh, start=1):
+                s = line.strip()
+                if s and not s.startswith(("#", "//")):
+                    yield i, s
     except UnicodeDecodeError:
         raise InputError(f"{path}: not a text file (cannot decode as UTF-8)") from None
 
 
-def _read_xyz(path: Path) -> np.ndarray:
-    lines = _read_text(path)
-    start = _first_data_line(lines)
-    if start < 0:
-        raise InputError(f"{path}: contains no points")
-    delimiter = "," if "," in lines[start] else None
-    try:  # fast path in C; on any problem fall back to the line-by-line parser for a precise error
-        arr = np.loadtxt(path, delimiter=delimiter, usecols=(0, 1, 2), comments=("#", "//"),
-                         ndmin=2, dtype=np.float64)
-        if arr.size:
-            return arr
+def _parse_rows(path: Path, delimiter: str | None, columns: tuple[int, int, int] = (0, 1, 2),
+                skip: int = 0) -> np.ndarray:
+    """Parse numeric rows line by line (after ``skip`` data lines); the error names the line."""
+    rows = []
+    for n, (i, s) in enumerate(_text_lines(path)):
+        if n < skip:
+            continue
+        parts = [p for p in (s.split(delimiter) if delimiter else s.split()) if p.strip() != ""]
+        if len(parts) <= max(columns):
+            raise InputError(f"{path}: line {i}: expected at least {max(columns) + 1} numbers, got "
+                             f"{len(parts)}: {s[:60]!r}")
+        try:
+            rows.append(tuple(float(parts[c]) for c in columns))
+        except ValueError:
+            raise InputError(f"{path}: line {i}: cannot parse numbers from {s[:60]!r}") from None
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
+
+
+def _loadtxt(path: Path, delimiter: str | None, columns: tuple[int, int, int], skip: int) -> np.ndarray | None:
+    """NumPy's C parser over the file (it reads in blocks); ``None`` on any problem, for the line
+    parser to name the line."""
+    try:
+        arr = np.loadtxt(path, delimiter=delimiter, usecols=columns, comments=("#", "//"), ndmin=2,
+                         dtype=np.float64, skiprows=skip, encoding="utf-8")
     except (ValueError, IndexError):
-        pass
-    return _parse_rows(path, lines, start, delimiter)
+        return None
+    return arr if arr.size else None
+
+
+def _read_xyz(path: Path) -> np.ndarray:
+    start, first, rows = _text_start(path)
+    _check_rows(path, rows, "lines of text")
+    delimiter = "," if "," in first else None
+    arr = _loadtxt(path, delimiter, (0, 1, 2), 0)
+    return arr if arr is not None else _parse_rows(path, delimiter)
 
 
 def _read_csv(path: Path) -> np.ndarray:
-    lines = _read_text(path)
-    start = _first_data_line(lines)
-    if start < 0:
-        raise InputError(f"{path}: contains no points")
-    header = [h.strip().strip('"').lower() for h in lines[start].split(",")]
+    start, first, rows = _text_start(path)
+    _check_rows(path, rows, "lines of text")
+    header = [h.strip().strip('"').lower() for h in first.split(",")]
     try:
         [float(h) for h in header[:3]]
         has_header = False
     except ValueError:
         has_header = True
     if not has_header:
-        return _parse_rows(path, lines, start, ",")
+        arr = _loadtxt(path, ",", (0, 1, 2), 0)
+        return arr if arr is not None else _parse_rows(path, ",")
     cols = (0, 1, 2)
     if all(name in header for name in ("x", "y", "z")):
         cols = tuple(header.index(name) for name in ("x", "y", "z"))
-    rows = []
-    for i in range(start + 1, len(lines)):
-        s = lines[i].strip()
-        if not s or s.startswith("#"):
-            continue
-        parts = s.split(",")
-        try:
-            rows.append(tuple(float(parts[c]) for c in cols))
-        except (ValueError, IndexError):
-            raise InputError(f"{path}: line {i + 1}: cannot parse numbers from {s[:60]!r}") from None
-    return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
-
-
-MAX_PLY_VERTICES = int(os.environ.get("ULTRABONEUDF_MAX_PLY_VERTICES", 500_000_000))
-"""A PLY header declaring more vertices than this is refused before anything is allocated."""
-
-_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
-              "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
-              "double": 8, "float64": 8}
-
-
-def _ply_header(path: Path) -> tuple[str, int, int | None, int]:
-    """``(format, declared vertices, bytes per vertex or None (a list property), header bytes)`` of
-    a PLY file, read from its header alone."""
-    with open(path, "rb") as fh:
-        head = fh.read(65536)
-    end = head.find(b"end_header")
-    if not head.startswith(b"ply") or end < 0:
-        raise InputError(f"{path}: not a PLY file (no 'ply' magic or no end_header in the first 64 KiB)")
-    header_bytes = head.find(b"\n", end) + 1
-    fmt, vertices, row, element = "", 0, 0, None
-    for line in head[:end].decode("ascii", errors="replace").splitlines():
-        words = line.split()
-        if words[:1] == ["format"] and len(words) > 1:
-            fmt = words[1]
-        elif words[:1] == ["element"] and len(words) == 3:
-            element = words[1]
-            if element == "vertex":
-                try:
-                    vertices = int(words[2])
-                except ValueError:
-                    raise InputError(f"{path}: bad vertex count {words[2]!r} in the PLY header") from None
-        elif words[:1] == ["property"] and element == "vertex" and row is not None:
-            row = None if words[1:2] == ["list"] else row + _PLY_SIZES.get(words[1], 0)
-    return fmt, vertices, row, header_bytes
+    arr = _loadtxt(path, ",", cols, start + 1)
+    return arr if arr is not None else _parse_rows(path, ",", cols, skip=1)
 
 
 def _read_ply(path: Path) -> np.ndarray:
-    fmt, declared, row, header_bytes = _ply_header(path)
-    if declared > MAX_PLY_VERTICES:
-        raise InputError(f"{path}: the header declares {declared:,} vertices, more than the limit of "
-                         f"{MAX_PLY_VERTICES:,} (ULTRABONEUDF_MAX_PLY_VERTICES)")
-    if fmt.startswith("binary") and row and path.stat().st_size < header_bytes + declared * row:
-        raise InputError(f"{path}: the header declares {declared:,} vertices ({declared * row:,} bytes) but "
-                         f"the file holds {path.stat().st_size - header_bytes:,} bytes after its header "
-                         f"(truncated?)")
+    header = read_ply_header(path)
+    declared = header.count("vertex")
+    _check_rows(path, declared, "vertices")
+    check_ply_length(path, header)
+    import trimesh
+
     try:
         geom = trimesh.load(path, process=False)
     except Exception as exc:  # trimesh raises many types for corrupt files
@@ -218,7 +211,20 @@ def _read_ply(path: Path) -> np.ndarray:
     return np.asarray(vertices, dtype=np.float64)
 
 
+def _npy_rows(path: Path, fh) -> int:
+    """Rows of the ``.npy`` array whose header ``fh`` is at, read from the header alone."""
+    try:
+        version = np.lib.format.read_magic(fh)
+        shape, _, _ = (np.lib.format.read_array_header_1_0(fh) if version == (1, 0)
+                       else np.lib.format.read_array_header_2_0(fh))
+    except (ValueError, OSError) as exc:
+        raise InputError(f"{path}: cannot read NumPy file ({exc})") from None
+    return int(shape[0]) if shape else 0
+
+
 def _read_npy(path: Path) -> np.ndarray:
+    with open(path, "rb") as fh:
+        _check_rows(path, _npy_rows(path, fh), "points")
     try:
         return np.load(path, allow_pickle=False)
     except (ValueError, OSError) as exc:
@@ -226,12 +232,18 @@ def _read_npy(path: Path) -> np.ndarray:
 
 
 def _read_npz(path: Path) -> np.ndarray:
+    import zipfile
+
     try:
+        with zipfile.ZipFile(path) as archive:
+            if "points.npy" in archive.namelist():
+                with archive.open("points.npy") as fh:
+                    _check_rows(path, _npy_rows(path, fh), "points")
         with np.load(path, allow_pickle=False) as data:
             if "points" not in data:
                 raise InputError(f"{path}: no array named 'points' (found: {', '.join(data.files)})")
             return data["points"]
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, zipfile.BadZipFile) as exc:
         raise InputError(f"{path}: cannot read NumPy archive ({exc})") from None
 
 
@@ -246,17 +258,18 @@ def load_points(path: str | os.PathLike, min_points: int = MIN_POINTS) -> np.nda
 
     Formats by extension: ``.xyz``/``.txt``/``.pts`` (whitespace or commas, ≥ 3 columns, extra
     columns ignored), ``.csv`` (optional header; columns ``x,y,z`` if named, else the first three),
-    ``.ply`` (vertices), ``.npy`` (N×≥3), ``.npz`` (array ``points``).
+    ``.ply`` (vertices), ``.npy`` (N×≥3), ``.npz`` (array ``points``). A file whose points would
+    not fit in the memory available is refused before it is read (text is read as a stream).
     """
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: no such file")
-    if path.is_dir():
-        raise InputError(f"{path}: is a folder, not a point cloud file")
     reader = POINT_READERS.get(path.suffix.lower())
-    if reader is None:
+    if reader is None and not path.is_dir():
+        check_input(path, "file")
         raise InputError(f"{path}: unknown point cloud extension {path.suffix!r}; "
                          f"supported: {', '.join(POINT_READERS)}")
+    check_input(path, "file")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a point cloud file")
     try:
         points = reader(path)
     except OSError as exc:  # permission denied, an I/O error: one line, not a traceback
@@ -274,6 +287,8 @@ def load_sweep_columns(path: str | os.PathLike, n_points: int) -> tuple[np.ndarr
     suffix = path.suffix.lower()
     columns: dict[str, np.ndarray] = {}
     if suffix == ".ply":
+        import trimesh
+
         try:
             raw = trimesh.load(path, process=False).metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
         except Exception as exc:  # load_points has read it: only a file changed in between gets here

@@ -4,6 +4,7 @@ lists them). :mod:`ultraboneudf.synth.simulator` runs the simulation."""
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -107,8 +108,65 @@ class SimulationConfig:
     seed: int = 0
     """Random seed: the same mesh, config and seed give the same sweep."""
 
+    def __post_init__(self) -> None:
+        problems = [f"{name}={getattr(self, name)!r} ({what})" for name, what in _problems(self)]
+        if problems:
+            raise InputError("impossible simulator settings: " + "; ".join(problems))
+
     def replace(self, **changes: Any) -> "SimulationConfig":
         return dataclasses.replace(self, **changes)
+
+
+MAX_IMAGE_PX = 4096
+"""Largest simulated image side, in pixels."""
+
+
+def _problems(cfg: SimulationConfig) -> list[tuple[str, str]]:
+    """``(field, what it must be)`` for every value no simulation can use."""
+    out = []
+
+    def need(ok: bool, name: str, what: str) -> None:
+        if not ok:
+            out.append((name, what))
+
+    def number(value: Any) -> bool:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if value is not None and not isinstance(value, tuple) and not number(value):
+            out.append((f.name, "a finite number"))
+    if out:
+        return out
+    for name in ("width_px", "height_px"):
+        need(16 <= getattr(cfg, name) <= MAX_IMAGE_PX, name, f"between 16 and {MAX_IMAGE_PX} pixels")
+    for name in ("spacing_mm", "frame_spacing_mm", "frame_rate_hz", "speckle_axial_mm", "speckle_lateral_mm",
+                 "pred_gap_mean_mm", "gt_step_mm"):
+        need(getattr(cfg, name) > 0, name, "more than 0")
+    for name in ("margin_mm", "tissue_depth_mm", "jitter_mm", "tracking_noise_mm", "pred_jitter_px",
+                 "pred_bias_px", "pred_fp_per_frame", "pred_beam_noise_mm", "pred_fp_depth_mm",
+                 "missing_run_mm", "n_fascia", "missing_runs", "seed", "pred_offset_mm", "pred_sheets_per_cm",
+                 "pred_streaks_per_frame", "pred_below_per_cm"):
+        need(getattr(cfg, name) >= 0, name, "0 or more")
+    for name in ("tilt_deg", "rock_deg", "jitter_deg", "tracking_noise_deg"):
+        need(0 <= getattr(cfg, name) < 90, name, "an angle from 0 to under 90 degrees")
+    for name in ("max_incidence_deg", "pred_max_incidence_deg"):
+        need(0 < getattr(cfg, name) <= 90, name, "an angle above 0 and up to 90 degrees")
+    for name in ("speed_variation", "pred_gap_fraction"):
+        need(0 <= getattr(cfg, name) < 1, name, "a fraction from 0 to under 1")
+    for name in ("shadow_level", "pred_fp_fraction"):
+        need(0 <= getattr(cfg, name) <= 1, name, "a fraction from 0 to 1")
+    need(cfg.pred_thickness_px >= 1, "pred_thickness_px", "1 or more pixels")
+    need(cfg.n_frames is None or 2 <= cfg.n_frames <= 100_000, "n_frames", "none, or 2 to 100,000 frames")
+    need(cfg.sweep_length_mm is None or cfg.sweep_length_mm > 0, "sweep_length_mm", "none, or more than 0")
+    for name in ("sweep_axis", "view"):
+        v = getattr(cfg, name)
+        need(v is None or (len(v) == 3 and all(number(x) for x in v) and any(x != 0 for x in v)), name,
+             "none, or a direction of three numbers, not all 0")
+    for name in ("width_px", "height_px", "n_fascia", "missing_runs", "pred_thickness_px", "seed"):
+        need(isinstance(getattr(cfg, name), int), name, "a whole number")
+    need(cfg.n_frames is None or isinstance(cfg.n_frames, int), "n_frames", "a whole number")
+    return out
 
 
 NOISE_PRESETS: dict[str, dict[str, float]] = {

@@ -12,17 +12,34 @@ from PIL import Image, UnidentifiedImageError
 
 from ...errors import InputError
 from ...io import atomic_write_bytes
+from ...io.inputs import check_fits_memory
 from ...progress import QUIET, Progress
 
 IMAGE_SUFFIXES = (".png", ".bmp", ".tif", ".tiff", ".jpg", ".jpeg")
 
 
-def read_image(path: str | os.PathLike) -> np.ndarray:
+MAX_FRAME_PIXELS = 64_000_000
+"""A frame declaring more pixels than this (8000 × 8000) is refused before it is decoded: an
+ultrasound frame is a few hundred thousand, a decompression bomb billions."""
+
+
+def read_image(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
     """Read one frame as a 2-D array ``(H, W)``: 8-bit grey (colour is converted to grey),
-    16-bit grey kept as ``uint16``. Raises :class:`InputError` naming the file if unreadable."""
+    16-bit grey kept as ``uint16``. Raises :class:`InputError` naming the file if it is not a
+    regular file, unreadable, or declares in its header another size than ``size`` ``(W, H)`` or
+    more than :data:`MAX_FRAME_PIXELS` pixels (checked before the pixels are decoded)."""
     path = Path(path)
+    if path.exists() and not path.is_file():
+        raise InputError(f"{path}: not a regular file (a folder, a named pipe or a device)")
     try:
         with Image.open(path) as im:
+            w, h = im.size
+            if size is not None and (w, h) != tuple(size):
+                raise InputError(f"{path}: image is {w}x{h} px, expected {size[0]}x{size[1]} (the first "
+                                 f"frame's size, or image_size_px of the calibration)")
+            if w * h > MAX_FRAME_PIXELS:
+                raise InputError(f"{path}: the image declares {w}x{h} px, more than "
+                                 f"{MAX_FRAME_PIXELS:,} pixels; not an ultrasound frame (a decompression bomb?)")
             im.load()
             if im.mode in ("I;16", "I;16B", "I;16L"):
                 return np.asarray(im, dtype=np.uint16)
@@ -33,7 +50,9 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
             return np.asarray(im, dtype=np.uint8)
     except FileNotFoundError:
         raise InputError(f"{path}: missing image file") from None
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+    except InputError:
+        raise
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
         raise InputError(f"{path}: unreadable image ({type(exc).__name__}: {exc})") from None
 
 
@@ -66,13 +85,10 @@ def read_stack(paths: Sequence[Path], size: tuple[int, int] | None = None,
 def _read_stack(paths: Sequence[Path], size: tuple[int, int] | None, advance) -> np.ndarray:
     frames = []
     for p in paths:
-        arr = read_image(p)
+        arr = read_image(p, size)  # a frame of another size is refused before it is decoded
         if size is None:
             size = (arr.shape[1], arr.shape[0])
-        if arr.shape != (size[1], size[0]):
-            raise InputError(f"{p}: image is {arr.shape[1]}x{arr.shape[0]} px, expected "
-                             f"{size[0]}x{size[1]} (the first frame's size, or image_size_px of the "
-                             f"calibration)")
+            check_fits_memory(p, 2 * len(paths) * arr.nbytes, f"{len(paths)} frames of {size[0]}x{size[1]} px")
         frames.append(arr)
         advance()
     if not frames:

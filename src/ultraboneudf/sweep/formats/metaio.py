@@ -26,6 +26,7 @@ import numpy as np
 
 from ...errors import InputError
 from ...io import atomic_write_bytes
+from ...io.inputs import check_input
 from ..model import Sweep, SweepWarning
 from ..transforms import format_matrix
 
@@ -101,6 +102,10 @@ def _read_pixels(path: Path, fields: dict[str, str], data_offset: int,
         raise InputError(f"{path}: ElementDataFile = {target} (file lists) is not supported")
     else:
         data_path, offset = path.parent / target, int(fields.get("HeaderSize", 0) or 0)
+        if Path(target).is_absolute() or not data_path.resolve().is_relative_to(path.parent.resolve()):
+            raise InputError(f"{path}: ElementDataFile = {target} lies outside the header's folder; the "
+                             f"pixel data must be beside it")
+        check_input(data_path, "pixel data file")
     expected = int(np.prod(shape)) * channels * dtype.itemsize
     if expected > MAX_PIXEL_BYTES:
         raise InputError(f"{path}: the header declares {expected / 2**30:.1f} GiB of pixels ({shape[0]} "

@@ -163,7 +163,7 @@ def read(path: str | os.PathLike, masks: str | os.PathLike | None = None,
     images = None
     frame_files: list[Path] = []
     if frame_dir.is_dir():
-        on_disk = {p.stem: p for p in frame_dir.iterdir() if p.is_file() and not p.name.startswith(".")}
+        on_disk = {p.stem: p for p in frame_dir.iterdir() if not p.is_dir() and not p.name.startswith(".")}
         for line_no, name in enumerate(names, start=2):
             if name not in on_disk:
                 raise InputError(f"{frame_dir / (name + '.png')}: missing frame (listed in "
