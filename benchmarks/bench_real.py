@@ -19,7 +19,7 @@ Scores, as the paper scores real data (every distance over ``--samples`` area sa
 pseudo ground truth (pGT) = the CT surface within 2 mm of an input point; ``cd_mm`` = ½(mean mesh →
 pGT + mean pGT → mesh); ``hd95_mm`` = the larger directed 95th percentile; ``on_bone`` = share of the
 mesh area within 2 mm of the CT; ``covered`` = share of the pGT within 2 mm of the mesh; ``pieces`` =
-connected pieces of the mesh; ``off_mm2`` = mesh area more than 2 mm from the CT. On the sweep the
+the mesh's parts connected across edges; ``off_mm2`` = mesh area more than 2 mm from the CT. On the sweep the
 CT is one of the bones in view (the fibula beside the tibia): CD, HD95 and ``on_bone`` score the
 mesh within ``--near-mm`` (10 mm) of it, and ``far_mm2`` is the area beyond (the other bones, and
 anything invented there). The row ``points`` scores the input points themselves as if they were the
@@ -184,7 +184,6 @@ def run(method: str, preset: str, points: np.ndarray, truth: Truth, args: argpar
     mesh (``None`` on failure)."""
     import ultraboneudf
     from ultraboneudf.errors import InputError
-    from ultraboneudf.evaluation.sampling import sample_surface
 
     overrides = {"train.iters": args.iters} if args.iters and method != "poisson" else {}
     t0 = time.perf_counter()
@@ -197,9 +196,18 @@ def run(method: str, preset: str, points: np.ndarray, truth: Truth, args: argpar
     row = {"time_s": round(time.perf_counter() - t0, 1), "points": len(points)}
     if rec.mesh is None:
         return {**row, "failed": True}, None
-    row.update(truth.score(sample_surface(rec.mesh, args.samples, seed=0), float(rec.mesh.area), near))
-    row["pieces"] = int(rec.quality.get("components", 0))
+    row.update(mesh_scores(truth, rec.mesh, args.samples, near))
     return row, rec.mesh
+
+
+def mesh_scores(truth: Truth, mesh, samples: int, near: float | None) -> dict:
+    """:meth:`Truth.score` of ``mesh`` over ``samples`` area samples, and its ``pieces``: the parts
+    connected across edges (floating sheets of false echoes each count)."""
+    from ultraboneudf.evaluation.sampling import sample_surface
+
+    out = truth.score(sample_surface(mesh, samples, seed=0), float(mesh.area), near)
+    out["pieces"] = len(mesh.split(only_watertight=False))
+    return out
 
 
 def main() -> None:
@@ -277,12 +285,10 @@ def main() -> None:
             if old is not None:
                 if stored is not None and stored.exists():  # for the pictures, or to score again
                     from ultraboneudf import load_mesh
-                    from ultraboneudf.evaluation.sampling import sample_surface
 
                     meshes[method] = load_mesh(stored)
                     if args.rescore:
-                        mesh = meshes[method]
-                        old.update(truth.score(sample_surface(mesh, args.samples, seed=0), float(mesh.area), near))
+                        old.update(mesh_scores(truth, meshes[method], args.samples, near))
                         rescored = True
                 rows.append(old)
                 continue

@@ -488,6 +488,7 @@ ROWS = [
 _HOOKED = textwrap.dedent("""
     import errno, os, signal, sys
     signal.signal(signal.SIGINT, signal.default_int_handler)   # a background runner may ignore it
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)                # and nohup this one
     stop, action = int(sys.argv[1]), sys.argv[2]
     if stop:
         from ultraboneudf.io import commit
