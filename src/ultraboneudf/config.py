@@ -157,10 +157,10 @@ class DataConfig(_Section):
     """``front_echo_mm``: how many times denser the bone's layer must be than an echo's own layer (±1 mm
     along the column) for the echo to count as lying in front of it."""
     min_component: float = 0.0
-    """After ``front_echo_mm``, for points without probe positions (a compounded cloud): drop the
-    groups of points (linked across gaps under ``surface_fit_mm``) smaller than this fraction of the
-    largest group — clusters of echoes detached from the bone. A sweep's fragments are judged by its
-    frames instead (``reconstruct SWEEP``); 0 = keep all."""
+    """After ``front_echo_mm``: drop the groups of points (linked across gaps under
+    ``surface_fit_mm``) smaller than this fraction of the largest group — clusters of echoes
+    detached from the bone — but not those holding a steep face's echoes (``steep_planes_deg``,
+    sweeps: a small bone's steep sides return a few echoes apart from the rest); 0 = keep all."""
     bridge: float = 0.0
     """Gaps in the data up to this × the local plane radius (``surface_fit_mm``, or the wider radius
     the fit needed, at most twice ``surface_fit_mm``) count as surface: for the ``surface`` distance target and for the support trim

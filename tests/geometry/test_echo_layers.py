@@ -103,3 +103,7 @@ def test_small_components_are_the_groups_smaller_than_a_share_of_the_largest():
     out = small_components(pts, 4.0, 0.02)
     assert out[5_000:5_040].all() and not out[:5_000].any() and not out[5_040:].any()
     assert not small_components(pts, 4.0, 0.0).any()
+    # a group holding a spared point (a steep face's echo) stays whole
+    spare = np.zeros(len(pts), dtype=bool)
+    spare[5_010] = True
+    assert not small_components(pts, 4.0, 0.02, spare).any()

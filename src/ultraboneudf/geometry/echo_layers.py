@@ -1,4 +1,4 @@
-"""False echoes that lie in front of the bone, and detached clusters, in a compounded cloud.
+"""False echoes that lie in front of the bone, and clusters detached from it.
 
 Real ultrasound bone clouds hold, besides the bone's own band of echoes, soft tissue that the
 segmentation took for bone: fascia and tendon sheets, clusters and streaks along the beam. Measured
@@ -23,10 +23,11 @@ bone's side:
    representative's plane is the side away from which its neighbours within ``convexity`` bend (the
    median height of the representatives around it above its plane is negative), made consistent
    with its neighbours' choice within ``2 × spacing`` by a majority vote.
-3. **Detached clusters.** Without probe positions, what is left is split into groups linked by
-   gaps under ``link``; groups with fewer points than ``fraction`` of the largest are dropped
-   (clusters of echoes floating in the soft tissue, which no column reached). A sweep's fragments
-   are judged by its frames instead (:mod:`ultraboneudf.sweep.consistency`).
+3. **Detached clusters.** What is left is split into groups linked by gaps under ``link``; groups
+   with fewer points than ``fraction`` of the largest are dropped (clusters of echoes floating in
+   the soft tissue, which no column reached), unless they hold echoes of a steep face (a sweep's
+   steep planes, :func:`~ultraboneudf.geometry.surface_fit.fit_local_planes`): the few echoes a
+   small bone's steep sides return lie apart from the rest.
 
 Lengths are in the cloud's unit (the pipeline works in mm, before normalisation).
 """
@@ -55,9 +56,9 @@ def false_echoes(points: np.ndarray, planes: LocalPlanes, view: np.ndarray | Non
     """(N,) bool: the false echoes among ``points`` (N, 3) with their local ``planes``
     (:func:`~ultraboneudf.geometry.surface_fit.fit_local_planes`): those in front of a denser layer
     (``depth`` > 0; counted by ``votes`` columns, ``ratio``: how much denser) and, with ``fraction``
-    > 0, the detached clusters left. ``view`` (N, 3): unit directions probe → point where known (a
-    sweep, whose own frame-to-frame filters judge its fragments: a small bone's steep faces return
-    a few echoes apart from the rest, so detached clusters are judged only without it).
+    > 0, the detached clusters left but for those holding a steep plane's points (a steep face
+    returns a few echoes apart from the rest of a small bone; only sweeps have steep planes).
+    ``view`` (N, 3): unit directions probe → point where known.
     The columns' radius and the least height in front are the planes' first radius and three
     quarters of it (the band of a bone's echoes is about that thick), representatives are spaced at
     half of it, and clusters are linked across gaps under it."""
@@ -83,9 +84,9 @@ def false_echoes(points: np.ndarray, planes: LocalPlanes, view: np.ndarray | Non
                 rows = np.flatnonzero(out)
                 out[rows] = shadowed(pts[rows], -view[rows], 0.75 * radius, depth, _BEAM_TOLERANCE,
                                      occluders=pts[strong])
-    if fraction > 0 and view is None:
+    if fraction > 0:
         rows = np.flatnonzero(~out)
-        out[rows[small_components(pts[rows], radius, fraction)]] = True
+        out[rows[small_components(pts[rows], radius, fraction, planes.steep[rows])]] = True
     return out
 
 
@@ -162,16 +163,20 @@ def in_front_of_denser_layer(points: np.ndarray, reps: np.ndarray, front: np.nda
     return votes
 
 
-def small_components(points: np.ndarray, link: float, fraction: float) -> np.ndarray:
+def small_components(points: np.ndarray, link: float, fraction: float, spare: np.ndarray | None = None
+                     ) -> np.ndarray:
     """(N,) bool: points of the groups (linked by gaps under ``link``) with fewer points than
-    ``fraction`` of the largest group."""
+    ``fraction`` of the largest group, but for the groups holding a point ``spare`` (N,) bool marks."""
     if len(points) == 0 or fraction <= 0:
         return np.zeros(len(points), dtype=bool)
     pairs = kd_tree(points).query_pairs(link, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points), len(points)))
     _, label = connected_components(graph, directed=False)
     size = np.bincount(label)
-    return size[label] < fraction * size.max()
+    small = size < fraction * size.max()
+    if spare is not None:
+        small &= np.bincount(label, weights=spare.astype(np.float64), minlength=len(size)) == 0
+    return small[label]
 
 
 def _pairs(neighbours) -> tuple[np.ndarray, np.ndarray]:
