@@ -74,7 +74,7 @@ def test_pixel_to_image_matrix():
 @pytest.mark.parametrize("bad, word", [
     (np.diag([1.0, 1.0, 1.02, 1.0]), "scaled or sheared"),
     (np.diag([1.0, 1.0, -1.0, 1.0]), "mirrored"),
-    (np.vstack([np.eye(4)[:3], [0.1, 0, 0, 1]]), "not rigid"),
+    (np.vstack([np.eye(4)[:3], [0.1, 0, 0, 1]]), "last row must be 0 0 0 1"),
     (np.full((4, 4), np.nan), "NaN"),
     (np.eye(3), "4×4"),
 ])

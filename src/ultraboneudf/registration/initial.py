@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..sweep import transforms
 from . import rigid
 
 
@@ -51,21 +52,8 @@ def pose_from_landmarks(ct: Any, target: Any, source: str = "landmarks") -> np.n
 def check_rigid(matrix: Any, source: str) -> np.ndarray:
     """``matrix`` as a ``(4, 4)`` rigid transform (rotation, translation in mm, last row 0 0 0 1);
     an :class:`InputError` naming ``source`` otherwise."""
-    try:
-        m = np.asarray(matrix, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"{source}: the transform must be numbers") from None
-    if m.shape != (4, 4):
-        raise InputError(f"{source}: expected a 4×4 transform, got shape {m.shape}")
-    if not np.isfinite(m).all():
-        raise InputError(f"{source}: the transform holds NaN or Inf")
-    if not np.allclose(m[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6):
-        raise InputError(f"{source}: the transform's last row must be 0 0 0 1, got {m[3].tolist()}")
-    r = m[:3, :3]
-    if not np.allclose(r @ r.T, np.eye(3), atol=1e-3) or np.linalg.det(r) < 0:
-        raise InputError(f"{source}: the transform is not rigid (its 3×3 part is not a rotation: scaled, "
-                         f"sheared or mirrored)")
-    return m
+    # looser than the tracking's tolerance: a starting pose is often typed or copied with four decimals
+    return transforms.check_rigid(matrix, source, tol=1e-3)
 
 
 def read_init(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, Any]]:

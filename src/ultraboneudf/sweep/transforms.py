@@ -83,6 +83,8 @@ def check_rigid(matrix: np.ndarray, source: str, tol: float = RIGID_TOL) -> np.n
         raise InputError(f"{source}: expected a 4×4 transform, got shape {m.shape}")
     if not np.isfinite(m).all():
         raise InputError(f"{source}: the transform contains NaN or Inf")
+    if np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max() > tol:
+        raise InputError(f"{source}: the transform's last row must be 0 0 0 1, got {m[3].tolist()}")
     err = rigidity_error(m)
     if err > tol:
         det = np.linalg.det(m[:3, :3])
