@@ -1,7 +1,7 @@
 """Every real PLUS file in ../shared/data/plus through the command line, as a user runs it, and the
 pictures of docs/sweep.md's PLUS section.
 
-    python benchmarks/plus_files.py [--plus DIR] [--out DIR] [--figures docs/]
+    python benchmarks/plus_files.py [--plus DIR] [--out DIR] [--figures docs/img]
 
 For each file: ``sweep2points`` (with its calibration, where PlusLibData has one) — exit code and
 the one-line outcome; for the bone and spine sweeps also ``reconstruct`` with the default preset (timing,
