@@ -4,7 +4,7 @@ samples per surface, and the example picture of docs/evaluation.md.
     .venv/bin/python benchmarks/bench_evaluate.py                       # 5e6 × 5e6 on the CPU
     .venv/bin/python benchmarks/bench_evaluate.py --device cuda
     .venv/bin/python benchmarks/bench_evaluate.py --scenario offset     # a 2 mm gap everywhere
-    .venv/bin/python benchmarks/bench_evaluate.py --picture docs/evaluation_femur.png --samples 0
+    .venv/bin/python benchmarks/bench_evaluate.py --picture docs/img/evaluation_femur.png --samples 0
 
 Scenario ``paper`` (default), as UltraBones100k is evaluated: the ground truth is the whole femur of
 shared/data/bones (232k faces, 47,700 mm², the "CT model"); the raw "ultrasound" cloud is the

@@ -9,7 +9,7 @@ For each bone: simulate a tracked sweep with the simulator's default noise, then
     and coverage of the visible true surface (fraction of its area within 1 mm of a point).
 
 Usage:
-    python benchmarks/bench_sweep.py [--bones DIR] [--json OUT.json] [--figures DOCS_DIR]
+    python benchmarks/bench_sweep.py [--bones DIR] [--json OUT.json] [--figures docs/img]
                                      [--real SAMPLE_DIR]
 
 ``--figures`` also writes the pictures of docs/sweep.md (segmentation overlays of the real sample's

@@ -8,7 +8,7 @@ field; near 0 the gradient runs along the surface and no crossing is found there
 a distance field) and the distance to the nearest input point (mm; large: a gap in the data).
 
     python benchmarks/diagnose_robust.py --bone pelvis --level hard --presets fast,robust \\
-        --picture docs/robust_holes_pelvis.png
+        --picture holes_pelvis.png
 
 The picture shows the truth coloured by its distance to each preset's mesh (one column each).
 """

@@ -1,7 +1,8 @@
-"""Every real PLUS file in ../shared/data/plus through the command line, as a user runs it, and the
-pictures of docs/sweep.md's PLUS section.
+"""Every sequence file of PlusLibData (github.com/PlusToolkit/PlusLibData; ``--plus DIR``, by default
+../shared/data/plus) through the command line, as a user runs it, and the pictures of docs/sweep.md's
+PLUS section.
 
-    python benchmarks/plus_files.py [--plus DIR] [--out DIR] [--figures docs/]
+    python benchmarks/plus_files.py [--plus DIR] [--out DIR] [--figures docs/img]
 
 For each file: ``sweep2points`` (with its calibration, where PlusLibData has one) — exit code and
 the one-line outcome; for the bone and spine sweeps also ``reconstruct`` with the default preset (timing,
@@ -95,6 +96,14 @@ def figure(sweep_path: Path, cal: Path | None, mesh_path: Path, out: Path, crop=
     save_png(canvas, out, greys=64)
 
 
+def _shown(arg: object, args: argparse.Namespace) -> str:
+    """A command-line argument as the docs show it: the PlusLibData file or output by its name."""
+    text = str(arg)
+    for folder in (args.plus, args.out):
+        text = text.replace(str(folder) + "/", "")
+    return text
+
+
 def main() -> int:
     from ultraboneudf.io import sidecar_path
 
@@ -113,7 +122,7 @@ def main() -> int:
         cmd = ["sweep2points", args.plus / name, *cal, "-o", args.out / f"{name}.ply", "--quiet"]
         code, out, err, dt = cli(*cmd)
         row = {"file": name, "command": "ultraboneudf " + " ".join(
-            str(c).replace(str(args.plus) + "/", "../shared/data/plus/") for c in cmd),
+            _shown(c, args) for c in cmd),
             "exit": code, "seconds": round(dt, 1), "outcome": last_line(out if code == 0 else err)}
         results.append(row)
         print(json.dumps(row, ensure_ascii=False), flush=True)
@@ -123,7 +132,7 @@ def main() -> int:
             code, out, err, dt = cli(*cmd)
             side = json.loads(sidecar_path(mesh).read_text()) if code == 0 else {}
             rec = {"file": name, "command": "ultraboneudf " + " ".join(
-                str(c).replace(str(args.plus) + "/", "../shared/data/plus/") for c in cmd),
+                _shown(c, args) for c in cmd),
                 "exit": code, "seconds": round(dt, 1), "stderr": err.strip(),
                 "timings": side.get("timings"), "counts": side.get("counts"),
                 "data_fit": side.get("data_fit"),

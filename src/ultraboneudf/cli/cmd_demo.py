@@ -1,4 +1,4 @@
-"""``ultraboneudf demo``: built-in synthetic sweep → mesh → evaluation → picture, on the CPU in minutes."""
+"""``ultraboneudf demo``: built-in synthetic sweep → mesh → evaluation → picture, on the CPU."""
 
 from __future__ import annotations
 

@@ -129,8 +129,8 @@ def surface_tree(points: np.ndarray) -> KDTree:
     """A KD-tree over ``(N, 3)`` points, tuned for surface samples.
 
     Leaf size 32, sliding-midpoint splits (``balanced_tree=False``) and cells not shrunk to the
-    data (``compact_nodes=False``): on the 5e6 × 5e6 femur benchmark this builds in half the time
-    and queries 2.5× faster than the defaults (22 s against 61 s for both directions, 2 cores).
+    data (``compact_nodes=False``): on the 5e6 × 5e6 femur samples of ``benchmarks/bench_evaluate.py``
+    this builds in half the time and queries 2.5× faster than the defaults (docs/evaluation.md).
     """
     return cKDTree(np.asarray(points, dtype=np.float64), leafsize=32, compact_nodes=False,
                    balanced_tree=False)

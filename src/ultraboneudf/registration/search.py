@@ -12,7 +12,7 @@ false echoes cannot pull the score). A first pass with few points ranks all hypo
 are scored again with more points; the best distinct poses go to the refinement.
 
 Everything is batched: one matrix product places a chunk of hypotheses' points, one gather reads
-the field. A pelvis (1.1 million hypotheses × 32 points) takes about 1 s on one core.
+the field (docs/registration.md times it).
 """
 
 from __future__ import annotations

@@ -75,8 +75,8 @@ class LoopLog:
         line = (f"estimate: training takes about {_duration(now - self.start + left)} on this {where} "
                 f"({self.iters:,} steps at {_duration(pace, fine=True)} each); then the mesh is extracted")
         if self.device.type == "cpu" and left > SLOW_RUN_S:
-            line += ("; the robust preset (the default) takes about a minute for 100,000 points on a "
-                     "CPU, a GPU runs this preset in minutes")
+            line += ("; the robust preset (the default) is made for a CPU's budget, and a GPU runs "
+                     "this preset far faster")
         self.progress.log(line)
 
     def resume(self, history: dict[str, list[float]], seconds: float) -> None:
