@@ -33,7 +33,7 @@ from ultraboneudf.sweep.bone import classical_bone_masks
 from ultraboneudf.sweep.figures import contact_sheet, mark_dilation, overlay, render_points, save_png
 from ultraboneudf.sweep.formats.images import read_image
 from ultraboneudf.synth.simulator import SimulationConfig, simulate_sweep
-from ultraboneudf.synth.truth import mask_precision_recall, point_to_mesh_distance, surface_coverage
+from ultraboneudf.synth.scoring import mask_precision_recall, point_to_mesh_distance, surface_coverage
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"

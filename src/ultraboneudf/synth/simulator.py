@@ -63,7 +63,7 @@ from ..sweep.model import Sweep
 from ..sweep.formats import ultrabones
 from ..sweep.transforms import pixels_to_world, rigid_from_euler
 from .slicing import MeshArrays, first_hits, slice_plane
-from .sweep_config import NOISE_PRESETS, SimulationConfig, config_with_noise
+from .simulation_config import NOISE_PRESETS, SimulationConfig, config_with_noise
 
 DEFAULT_CALIBRATION = rigid_from_euler([26.0, -0.5, 128.0], [92.5, -0.5, 179.2])
 """A probe calibration like the UltraBones100k sample's (image-plane mm → probe frame)."""
