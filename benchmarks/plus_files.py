@@ -53,7 +53,8 @@ def overlay_sheet(sweep_path: Path, cal: Path, out: Path, n: int = 8, crop=None)
     """``n`` frames with the classical detector's bone surface in red (the docs' overlay picture)."""
     from ultraboneudf.sweep import read_sweep
     from ultraboneudf.sweep.bone import classical_bone_masks
-    from ultraboneudf.sweep.figures import contact_sheet, mark_dilation, overlay, save_png
+    from ultraboneudf.pictures import save_picture
+    from ultraboneudf.sweep.figures import contact_sheet, mark_dilation, overlay
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -64,7 +65,7 @@ def overlay_sheet(sweep_path: Path, cal: Path, out: Path, n: int = 8, crop=None)
     for i in frames:
         im = overlay(sweep.images[i], masks[i], dilate=mark_dilation(crop[2] if crop else sweep.width, 225))
         tiles.append(im.crop((crop[0], crop[1], crop[0] + crop[2], crop[1] + crop[3])) if crop else im)
-    save_png(contact_sheet(tiles, [sweep.frame_names[i] for i in frames], columns=4, tile_width=225),
+    save_picture(contact_sheet(tiles, [sweep.frame_names[i] for i in frames], columns=4, tile_width=225),
              out, greys=64)
 
 
@@ -75,7 +76,8 @@ def figure(sweep_path: Path, cal: Path | None, mesh_path: Path, out: Path, crop=
     from ultraboneudf.evaluation.render import render_distance_image
     from ultraboneudf.sweep import read_sweep, sweep_to_points
     from ultraboneudf.sweep.bone import classical_bone_masks
-    from ultraboneudf.sweep.figures import frames_with_mesh, save_png
+    from ultraboneudf.pictures import save_picture
+    from ultraboneudf.sweep.figures import frames_with_mesh
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -92,7 +94,7 @@ def figure(sweep_path: Path, cal: Path | None, mesh_path: Path, out: Path, crop=
     canvas = Image.new("RGB", (sheet.width, render.height + sheet.height), (0, 0, 0))
     canvas.paste(render, (0, 0))
     canvas.paste(sheet, (0, render.height))
-    save_png(canvas, out, greys=64)
+    save_picture(canvas, out, greys=64)
 
 
 def main() -> int:
