@@ -26,15 +26,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
+from ultraboneudf.io import load_mesh
+from ultraboneudf.pictures import save_picture
 from ultraboneudf.sweep import BoneDetector, read_sweep, sweep_to_points
 from ultraboneudf.sweep.bone import classical_bone_masks
-from ultraboneudf.pictures import save_picture
 from ultraboneudf.sweep.figures import contact_sheet, mark_dilation, overlay, render_points
 from ultraboneudf.sweep.formats.images import read_image
-from ultraboneudf.synth.simulator import SimulationConfig, simulate_sweep
 from ultraboneudf.synth.scoring import mask_precision_recall, point_to_mesh_distance, surface_coverage
+from ultraboneudf.synth.simulator import SimulationConfig, simulate_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
@@ -50,7 +50,7 @@ def score_points(points: np.ndarray, sim) -> dict[str, float]:
 
 
 def bench_bone(path: Path, detector: BoneDetector, figures: Path | None) -> dict:
-    mesh = trimesh.load(path, process=False)
+    mesh = load_mesh(path)
     t0 = time.perf_counter()
     sim = simulate_sweep(mesh, SimulationConfig(seed=0))
     t_sim = time.perf_counter() - t0

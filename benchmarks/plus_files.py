@@ -51,9 +51,9 @@ def last_line(text: str) -> str:
 
 def overlay_sheet(sweep_path: Path, cal: Path, out: Path, n: int = 8, crop=None) -> None:
     """``n`` frames with the classical detector's bone surface in red (the docs' overlay picture)."""
+    from ultraboneudf.pictures import save_picture
     from ultraboneudf.sweep import read_sweep
     from ultraboneudf.sweep.bone import classical_bone_masks
-    from ultraboneudf.pictures import save_picture
     from ultraboneudf.sweep.figures import contact_sheet, mark_dilation, overlay
 
     with warnings.catch_warnings():
@@ -70,13 +70,13 @@ def overlay_sheet(sweep_path: Path, cal: Path, out: Path, n: int = 8, crop=None)
 
 
 def figure(sweep_path: Path, cal: Path | None, mesh_path: Path, out: Path, crop=None) -> None:
-    import trimesh
     from PIL import Image
 
     from ultraboneudf.evaluation.render import render_distance_image
+    from ultraboneudf.io import load_mesh
+    from ultraboneudf.pictures import save_picture
     from ultraboneudf.sweep import read_sweep, sweep_to_points
     from ultraboneudf.sweep.bone import classical_bone_masks
-    from ultraboneudf.pictures import save_picture
     from ultraboneudf.sweep.figures import frames_with_mesh
 
     with warnings.catch_warnings():
@@ -84,7 +84,7 @@ def figure(sweep_path: Path, cal: Path | None, mesh_path: Path, out: Path, crop=
         sweep = read_sweep(sweep_path, **({} if cal is None else {"calibration": cal}))
     masks, _ = classical_bone_masks(sweep)
     points = sweep_to_points(sweep.with_masks(masks), segment="masks").points
-    mesh = trimesh.load(mesh_path, process=False)
+    mesh = load_mesh(mesh_path)
     frames = np.linspace(0, sweep.n_frames - 1, 6).round().astype(int)
     sheet = frames_with_mesh(sweep, masks, mesh, frames, columns=3, tile_width=300, crop=crop)
     render = render_distance_image(mesh, points, views=("front", "right", "top"), tile_height=260, vmax=3.0,
