@@ -46,7 +46,7 @@ from .mask_errors import add_clutter, boundary_offsets, predicted_mask
 from .probe_path import missing_frames, perturb_poses, plan_path
 from .simulation_config import NOISE_PRESETS, SimulationConfig, config_with_noise
 from .slicing import MeshArrays
-from .visible_truth import truth_beam_spacing, visible_truth
+from .visible_truth import visible_truth
 
 DEFAULT_CALIBRATION = rigid_from_euler([26.0, -0.5, 128.0], [92.5, -0.5, 179.2])
 """A probe calibration like the UltraBones100k sample's (image-plane mm → probe frame)."""
@@ -221,5 +221,4 @@ def load_bone_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
 
 
 __all__ = ["SimulationConfig", "SimulatedSweep", "simulate_sweep", "write_simulation",
-           "config_with_noise", "NOISE_PRESETS", "DEFAULT_CALIBRATION", "load_bone_mesh",
-           "truth_beam_spacing"]
+           "config_with_noise", "NOISE_PRESETS", "DEFAULT_CALIBRATION", "load_bone_mesh"]
