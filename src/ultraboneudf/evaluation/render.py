@@ -8,9 +8,10 @@ mesh side by side (:func:`render_distance_png`), or a grid of methods × views w
 Rendering is a small NumPy rasteriser, not matplotlib: matplotlib's 3-D axes sort whole polygons
 (painter's order), which is wrong for interpenetrating surfaces and slow for a large mesh, while a
 vectorised z-buffer decides visibility per pixel. Each face is expanded into the pixel centres of
-its bounding box, barycentric coordinates decide coverage, and the nearest depth wins. Shading is flat per face and two-sided (``|n·l|``),
-because UDF meshes are not consistently oriented. Images are drawn at 2× and box-filtered down
-(anti-aliasing). Pillow writes the PNG and draws the text (:mod:`~ultraboneudf.pictures`).
+its bounding box, barycentric coordinates decide coverage, and the nearest depth wins. Shading is
+flat per face and two-sided (``|n·l|``), because UDF meshes are not consistently oriented. Images
+are drawn at 2× and box-filtered down (anti-aliasing). Pillow writes the PNG and draws the text
+(:mod:`~ultraboneudf.pictures`).
 
 Distances are per vertex: each vertex's distance to the nearest of ``colour_samples`` area-uniform
 ground-truth samples (after the pseudo-GT filter when raw points are given), interpolated across
