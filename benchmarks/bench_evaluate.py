@@ -37,9 +37,11 @@ FEMUR_CANDIDATES = [ROOT / "shared" / "data" / "bones" / "femur.ply",
 
 
 def femur() -> trimesh.Trimesh:
+    from ultraboneudf.io import load_mesh
+
     for p in FEMUR_CANDIDATES:
         if p.exists():
-            return trimesh.load(p, force="mesh", process=False)
+            return load_mesh(p)
     sys.exit("bench_evaluate: femur.ply not found in shared/data/bones")
 
 

@@ -92,7 +92,8 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
     mesh = load_mesh(BONES / f"{bone}.ply")
     tag = f"{bone}_{level}_s{seed}"
     if level in SWEEP_LEVELS:
-        from ultraboneudf.synth.simulator import config_with_noise, truth_beam_spacing
+        from ultraboneudf.synth.simulator import config_with_noise
+        from ultraboneudf.synth.visible_truth import truth_beam_spacing
 
         sim_cfg = config_with_noise(SWEEP_LEVELS[level], seed=seed, **(sim or {}))
         # the truth's beam spacing names the cache, so a truth sampled by another rule is not reused

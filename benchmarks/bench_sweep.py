@@ -26,14 +26,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
+from ultraboneudf.io import load_mesh
+from ultraboneudf.pictures import save_picture
 from ultraboneudf.sweep import BoneDetector, read_sweep, sweep_to_points
 from ultraboneudf.sweep.bone import classical_bone_masks
-from ultraboneudf.sweep.figures import contact_sheet, mark_dilation, overlay, render_points, save_png
+from ultraboneudf.sweep.figures import contact_sheet, mark_dilation, overlay, render_points
 from ultraboneudf.sweep.formats.images import read_image
+from ultraboneudf.synth.scoring import mask_precision_recall, point_to_mesh_distance, surface_coverage
 from ultraboneudf.synth.simulator import SimulationConfig, simulate_sweep
-from ultraboneudf.synth.truth import mask_precision_recall, point_to_mesh_distance, surface_coverage
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
@@ -49,7 +50,7 @@ def score_points(points: np.ndarray, sim) -> dict[str, float]:
 
 
 def bench_bone(path: Path, detector: BoneDetector, figures: Path | None) -> dict:
-    mesh = trimesh.load(path, process=False)
+    mesh = load_mesh(path)
     t0 = time.perf_counter()
     sim = simulate_sweep(mesh, SimulationConfig(seed=0))
     t_sim = time.perf_counter() - t0
@@ -71,7 +72,7 @@ def bench_bone(path: Path, detector: BoneDetector, figures: Path | None) -> dict
         row["_tiles"] = [overlay(sim.sweep.images[i], det_masks[i], truth=sim.true_masks[i], dilate=mark_dilation(sim.sweep.width, 256))
                          for i in idx]
         row["_tile_labels"] = [f"{path.stem} frame {i}" for i in idx]
-        save_png(render_points(cp_det.points, cp_det.frame_index, width=900, panel_height=200,
+        save_picture(render_points(cp_det.points, cp_det.frame_index, width=900, panel_height=200,
                                title=f"{path.stem}: simulated sweep, classical detector"),
                  figures / f"sweep_sim_points_{path.stem}.png", max_colours=96)
     return row
@@ -82,17 +83,17 @@ def real_figures(sample: Path, detector: BoneDetector, figures: Path) -> dict:
     masks, _ = classical_bone_masks(sweep, detector)
     tiles = [overlay(sweep.images[i], masks[i], dilate=mark_dilation(sweep.width, 240))
              for i in range(sweep.n_frames)]
-    save_png(contact_sheet(tiles, [f"{n}" for n in sweep.frame_names], columns=6, tile_width=240),
+    save_picture(contact_sheet(tiles, [f"{n}" for n in sweep.frame_names], columns=6, tile_width=240),
              figures / "sweep_real_overlays.jpg")
     ex_files = sorted((sample / "examples").glob("*.png"))
     ex_tiles = []
     for f in ex_files:
         img = read_image(f)
         ex_tiles.append(overlay(img, detector.segment(img, 0.05392), dilate=mark_dilation(img.shape[1], 300)))
-    save_png(contact_sheet(ex_tiles, [f.name for f in ex_files], columns=5, tile_width=300),
+    save_picture(contact_sheet(ex_tiles, [f.name for f in ex_files], columns=5, tile_width=300),
              figures / "sweep_examples_overlays.jpg")
     cp = sweep_to_points(sweep, masks=masks, segment="masks")
-    save_png(render_points(cp.points, cp.frame_index, width=1000, panel_height=220,
+    save_picture(render_points(cp.points, cp.frame_index, width=1000, panel_height=220,
                            title="UltraBones100k sample: 30 frames, classical detector (CT frame)"),
              figures / "sweep_real_points.png", max_colours=96)
     frames = np.bincount(cp.frame_index, minlength=sweep.n_frames)
@@ -133,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.figures is not None:
         tiles = [t for r in rows for t in r["_tiles"]]
         labels = [t for r in rows for t in r["_tile_labels"]]
-        save_png(contact_sheet(tiles, labels, columns=6, tile_width=256),
+        save_picture(contact_sheet(tiles, labels, columns=6, tile_width=256),
                  args.figures / "sweep_sim_overlays.jpg")
         if args.real.is_dir():
             result["real_sample"] = real_figures(args.real, detector, args.figures)

@@ -52,9 +52,10 @@ def last_line(text: str) -> str:
 
 def overlay_sheet(sweep_path: Path, cal: Path, out: Path, n: int = 8, crop=None) -> None:
     """``n`` frames with the classical detector's bone surface in red (the docs' overlay picture)."""
+    from ultraboneudf.pictures import save_picture
     from ultraboneudf.sweep import read_sweep
     from ultraboneudf.sweep.bone import classical_bone_masks
-    from ultraboneudf.sweep.figures import contact_sheet, mark_dilation, overlay, save_png
+    from ultraboneudf.sweep.figures import contact_sheet, mark_dilation, overlay
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -65,25 +66,26 @@ def overlay_sheet(sweep_path: Path, cal: Path, out: Path, n: int = 8, crop=None)
     for i in frames:
         im = overlay(sweep.images[i], masks[i], dilate=mark_dilation(crop[2] if crop else sweep.width, 225))
         tiles.append(im.crop((crop[0], crop[1], crop[0] + crop[2], crop[1] + crop[3])) if crop else im)
-    save_png(contact_sheet(tiles, [sweep.frame_names[i] for i in frames], columns=4, tile_width=225),
+    save_picture(contact_sheet(tiles, [sweep.frame_names[i] for i in frames], columns=4, tile_width=225),
              out, greys=64)
 
 
 def figure(sweep_path: Path, cal: Path | None, mesh_path: Path, out: Path, crop=None) -> None:
-    import trimesh
     from PIL import Image
 
     from ultraboneudf.evaluation.render import render_distance_image
+    from ultraboneudf.io import load_mesh
+    from ultraboneudf.pictures import save_picture
     from ultraboneudf.sweep import read_sweep, sweep_to_points
     from ultraboneudf.sweep.bone import classical_bone_masks
-    from ultraboneudf.sweep.figures import frames_with_mesh, save_png
+    from ultraboneudf.sweep.figures import frames_with_mesh
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         sweep = read_sweep(sweep_path, **({} if cal is None else {"calibration": cal}))
     masks, _ = classical_bone_masks(sweep)
     points = sweep_to_points(sweep.with_masks(masks), segment="masks").points
-    mesh = trimesh.load(mesh_path, process=False)
+    mesh = load_mesh(mesh_path)
     frames = np.linspace(0, sweep.n_frames - 1, 6).round().astype(int)
     sheet = frames_with_mesh(sweep, masks, mesh, frames, columns=3, tile_width=300, crop=crop)
     render = render_distance_image(mesh, points, views=("front", "right", "top"), tile_height=260, vmax=3.0,
@@ -93,7 +95,7 @@ def figure(sweep_path: Path, cal: Path | None, mesh_path: Path, out: Path, crop=
     canvas = Image.new("RGB", (sheet.width, render.height + sheet.height), (0, 0, 0))
     canvas.paste(render, (0, 0))
     canvas.paste(sheet, (0, render.height))
-    save_png(canvas, out, greys=64)
+    save_picture(canvas, out, greys=64)
 
 
 def _shown(arg: object, args: argparse.Namespace) -> str:

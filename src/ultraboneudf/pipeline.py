@@ -32,7 +32,7 @@ from .fields.base import Field
 from .geometry.echo_layers import false_echoes
 from .geometry.frames import frame_axes, sweep_ends
 from .geometry.normalize import Normalizer
-from .geometry.support import DataSurface
+from .geometry.data_surface import DataSurface
 from .geometry.surface_fit import LocalPlanes, fit_local_planes, shadowed, steep_echoes
 from .geometry.voxel import voxel_downsample, voxel_downsample_with
 from .io import check_outputs, check_units, save_mesh_with_sidecar, validate_points

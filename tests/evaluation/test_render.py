@@ -90,7 +90,7 @@ def test_nothing_to_render_is_an_input_error(tmp_path):
 
 
 def test_grid_columns_are_as_wide_as_their_labels_for_a_thin_bone(tmp_path):
-    from ultraboneudf.evaluation.render import _font
+    from ultraboneudf.pictures import text_font as _font
 
     rod = trimesh.creation.box(extents=(1.0, 1.0, 30.0))       # tall and thin: a narrow tile
     out = tmp_path / "grid.png"

@@ -53,7 +53,7 @@ def test_normal_trim_drops_a_parallel_sheet_but_keeps_the_rim_continuation():
     [−1.4, 1.4]² (0.4 past the data's rim in its own plane) and a sheet z = −0.3 under the data.
     The distance rule at 0.6 keeps both (the corners lie 0.57 from the data); along the normal at
     0.2 the sheet goes (0.3 from the data along the normal) and the rim continuation stays (0)."""
-    from ultraboneudf.geometry.support import DataSurface
+    from ultraboneudf.geometry.data_surface import DataSurface
 
     a = np.linspace(-1.0, 1.0, 41)
     xx, yy = np.meshgrid(a, a, indexing="ij")

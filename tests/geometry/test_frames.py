@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from ultraboneudf.geometry.frames import frame_axes
-from ultraboneudf.geometry.support import DataSurface
+from ultraboneudf.geometry.data_surface import DataSurface
 from ultraboneudf.geometry.surface_fit import fit_local_planes
 
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from ultraboneudf.geometry.support import DataSurface
+from ultraboneudf.geometry.data_surface import DataSurface
 from ultraboneudf.geometry.surface_fit import fit_local_planes, steep_echoes
 
 

@@ -9,7 +9,7 @@ import trimesh
 from ultraboneudf.cli import main
 from ultraboneudf.sweep import BoneDetector, compound, read_sweep, sweep_to_points
 from ultraboneudf.synth.simulator import SimulationConfig, config_with_noise, simulate_sweep
-from ultraboneudf.synth.truth import mask_precision_recall, point_to_mesh_distance, surface_coverage
+from ultraboneudf.synth.scoring import mask_precision_recall, point_to_mesh_distance, surface_coverage
 
 RADIUS, HALF = 8.0, 20.0  # capsule: segment z ∈ [−20, 20], radius 8 mm
 

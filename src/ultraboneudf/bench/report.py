@@ -137,9 +137,10 @@ def method_grids(out: Path, limit: int = 24, tile_height: int = 240) -> list[tup
     by their distance to the unit's ground truth (front and top views, one scale), with each
     cell's CD under its name. Units whose ground truth is not recorded or no longer exists are
     left out."""
-    from ..evaluation.render import png_bytes, render_grid_image
+    from ..evaluation.render import render_grid_image
     from ..evaluation.sampling import sample_surface
     from ..io import load_mesh
+    from ..pictures import png_bytes
 
     rows = finished_rows(out)
     by_unit: dict[str, list[tuple[str, dict]]] = {}

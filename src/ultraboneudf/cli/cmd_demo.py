@@ -86,7 +86,8 @@ def _run(args: argparse.Namespace, overrides: dict) -> int:
 
 def _picture(mesh, truth, cd_mm: float, preset: str) -> bytes:
     """A distance-coloured render of the reconstruction against the truth (mean written = CD), PNG."""
-    from ..evaluation.render import png_bytes, reference_points, render_distance_image
+    from ..evaluation.render import reference_points, render_distance_image
+    from ..pictures import png_bytes
 
     return png_bytes(render_distance_image(mesh, reference_points(truth, samples=500_000), mean_mm=cd_mm,
                                            title=f"demo: {preset} preset, colour = distance to the truth (mm)"))

@@ -90,8 +90,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _draw(args, kind, meshes, labels, views, gt, raw) -> bytes:
     """The picture's (PNG) or the viewer's (HTML) bytes."""
-    from ..evaluation.render import (png_bytes, reference_points, render_distance_image,
-                                      render_grid_image)
+    from ..evaluation.render import reference_points, render_distance_image, render_grid_image
+    from ..pictures import png_bytes
     from ..evaluation.viewer import viewer_html
 
     reference = None

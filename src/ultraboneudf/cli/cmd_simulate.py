@@ -11,7 +11,7 @@ from . import add_overwrite
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..synth.sweep_config import NOISE_PRESETS, SimulationConfig
+    from ..synth.simulation_config import NOISE_PRESETS, SimulationConfig
 
     names = ", ".join(f.name for f in dataclasses.fields(SimulationConfig))
     p = sub.add_parser(
@@ -47,7 +47,7 @@ def parse_assignments(items: list[str]) -> dict:
     import typing
 
     from ..config import coerce
-    from ..synth.sweep_config import SimulationConfig
+    from ..synth.simulation_config import SimulationConfig
 
     hints = typing.get_type_hints(SimulationConfig)
     out = {}
@@ -68,7 +68,7 @@ MAX_FRAME_BYTES = 8 << 30
 
 def run(args: argparse.Namespace) -> int:
     from ..io import check_input, check_output
-    from ..synth.sweep_config import config_with_noise
+    from ..synth.simulation_config import config_with_noise
 
     out: Path = args.output
     check_output(out, inputs=(args.mesh,), overwrite=args.overwrite, kind="folder")

@@ -51,7 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _write_overlays(sweep, masks: np.ndarray, folder: Path) -> list[Path]:
-    from ..sweep.figures import contact_sheet, mark_dilation, overlay, save_png
+    from ..pictures import save_picture
+    from ..sweep.figures import contact_sheet, mark_dilation, overlay
 
     written = []
     per_sheet = 30
@@ -59,8 +60,8 @@ def _write_overlays(sweep, masks: np.ndarray, folder: Path) -> list[Path]:
         idx = range(s, min(sweep.n_frames, s + per_sheet))
         tiles = [overlay(sweep.images[i], masks[i], dilate=mark_dilation(sweep.width, 320)) for i in idx]
         path = folder / f"overlay_{s // per_sheet:03d}.png"
-        save_png(contact_sheet(tiles, [Path(sweep.frame_names[i]).name for i in idx], columns=6,
-                               tile_width=320), path, greys=64)
+        save_picture(contact_sheet(tiles, [Path(sweep.frame_names[i]).name for i in idx], columns=6,
+                                   tile_width=320), path, greys=64)
         written.append(path)
     return written
 

@@ -6,12 +6,12 @@ mesh side by side (:func:`render_distance_png`), or a grid of methods × views w
 (:func:`render_grid_png`).
 
 Rendering is a small NumPy rasteriser, not matplotlib: matplotlib's 3-D axes sort whole polygons
-(painter's order), which is wrong for interpenetrating surfaces and takes tens of seconds for a
-~200k-face mesh, while a vectorised z-buffer draws the same mesh in well under a second per view.
-Each face is expanded into the pixel centres of its bounding box, barycentric coordinates decide
-coverage, and the nearest depth wins per pixel. Shading is flat per face and two-sided (``|n·l|``),
-because UDF meshes are not consistently oriented. Images are drawn at 2× and box-filtered down
-(anti-aliasing). Pillow writes the PNG and draws the text.
+(painter's order), which is wrong for interpenetrating surfaces and slow for a large mesh, while a
+vectorised z-buffer decides visibility per pixel. Each face is expanded into the pixel centres of
+its bounding box, barycentric coordinates decide coverage, and the nearest depth wins. Shading is
+flat per face and two-sided (``|n·l|``), because UDF meshes are not consistently oriented. Images
+are drawn at 2× and box-filtered down (anti-aliasing). Pillow writes the PNG and draws the text
+(:mod:`~ultraboneudf.pictures`).
 
 Distances are per vertex: each vertex's distance to the nearest of ``colour_samples`` area-uniform
 ground-truth samples (after the pseudo-GT filter when raw points are given), interpolated across
@@ -31,6 +31,7 @@ import numpy as np
 from ..errors import InputError
 from ..geometry.neighbors import kd_tree
 from ..io import atomic_write_bytes
+from ..pictures import pil, png_bytes, ramp, text_font
 from .sampling import MeshLike, face_areas, mesh_arrays
 
 # colour ramp (position in [0, 1], RGB 0–255): blue → cyan → green → yellow → red
@@ -55,20 +56,9 @@ VIEWS: dict[str, tuple[float, float]] = {
 DEFAULT_VIEWS = ("front", "right", "back")
 
 
-def _pil():
-    try:
-        from PIL import Image, ImageDraw, ImageFont
-    except ImportError:  # pragma: no cover - Pillow is a dependency
-        raise InputError("rendering PNG pictures needs Pillow: pip install 'pillow>=10.1'") from None
-    return Image, ImageDraw, ImageFont
-
-
 def colormap(values: np.ndarray, vmax: float = DEFAULT_VMAX_MM) -> np.ndarray:
     """RGB ``(..., 3)`` float in [0, 255] for distances ``values`` (mm) clamped to ``[0, vmax]``."""
-    t = np.clip(np.asarray(values, dtype=np.float64) / float(vmax), 0.0, 1.0)
-    pos = np.array([s[0] for s in COLOR_STOPS])
-    rgb = np.array([s[1] for s in COLOR_STOPS], dtype=np.float64)
-    return np.stack([np.interp(t, pos, rgb[:, c]) for c in range(3)], axis=-1)
+    return ramp(np.asarray(values, dtype=np.float64) / float(vmax), COLOR_STOPS)
 
 
 # --------------------------------------------------------------------------------------------
@@ -306,21 +296,13 @@ def render_view(vertices: np.ndarray, faces: np.ndarray, cam: Camera, framing: F
 # composition
 
 
-def _font(size: int):
-    _, _, ImageFont = _pil()
-    try:
-        return ImageFont.load_default(size=size)
-    except (TypeError, OSError, ImportError):  # Pillow without FreeType: the fixed bitmap font
-        return ImageFont.load_default()
-
-
 def _colour_bar(height: int, vmax: float, mean_text: Optional[str], scale: float = 1.0):
     """A vertical colour bar panel (PIL image): ticks 0…vmax mm, the mean written under the bar."""
-    Image, ImageDraw, _ = _pil()
+    Image, ImageDraw, _ = pil()
     width = int(120 * scale)
     panel = Image.new("RGB", (width, height), BACKGROUND)
     draw = ImageDraw.Draw(panel)
-    font = _font(int(15 * scale))
+    font = text_font(int(15 * scale))
     bar_w = int(22 * scale)
     top, bottom = int(40 * scale), height - int(70 * scale)
     bottom = max(bottom, top + 20)
@@ -342,14 +324,6 @@ def _colour_bar(height: int, vmax: float, mean_text: Optional[str], scale: float
     if mean_text:
         draw.text((x0 - 4, bottom + int(14 * scale)), mean_text, fill=(0, 0, 0), font=font)
     return panel
-
-
-def png_bytes(image) -> bytes:
-    import io as _io
-
-    buf = _io.BytesIO()
-    image.save(buf, format="PNG", optimize=True)
-    return buf.getvalue()
 
 
 @dataclass(frozen=True)
@@ -382,7 +356,7 @@ def render_distance_image(mesh: MeshLike, reference: Optional[np.ndarray] = None
     """A PIL image: ``mesh`` from several ``views`` side by side, coloured by distance to
     ``reference`` points (mm), with a colour bar and the mean under it. ``mean_mm`` overrides the
     written mean (e.g. pass the CD); ``reference=None`` draws a plain grey mesh without a bar."""
-    Image, ImageDraw, _ = _pil()
+    Image, ImageDraw, _ = pil()
     col = colour_mesh(mesh, reference)
     if up_axis is None:
         finite = col.vertices[np.isfinite(col.vertices).all(axis=1)]
@@ -401,7 +375,7 @@ def render_distance_image(mesh: MeshLike, reference: Optional[np.ndarray] = None
         canvas.paste(bar, (width, title_h))
     if title:
         ImageDraw.Draw(canvas).text((10, int(title_h * 0.2)), title, fill=(0, 0, 0),
-                                    font=_font(max(12, int(title_h * 0.55))))
+                                    font=text_font(max(12, int(title_h * 0.55))))
     return canvas
 
 
@@ -419,7 +393,7 @@ def render_grid_image(meshes: Mapping[str, Optional[MeshLike]], reference: Optio
     """A PIL image: one column per method (``None`` mesh = "failed"), one row per view, the same
     camera and scale for all, one colour bar. ``ground_truth`` adds a grey first column; under each
     method's name the mean distance (or ``means_mm[name]``, e.g. its CD)."""
-    Image, ImageDraw, _ = _pil()
+    Image, ImageDraw, _ = pil()
     cols: list[tuple[str, Optional[Colored]]] = []
     if ground_truth is not None:
         cols.append(("ground truth", colour_mesh(ground_truth, None, "ground truth")))
@@ -437,7 +411,7 @@ def render_grid_image(meshes: Mapping[str, Optional[MeshLike]], reference: Optio
     cams = [camera(v, up_axis) for v in views]
     framing = frame(every, cams, tile_height)
     head_h = int(54 * max(0.75, tile_height / 360))
-    font = _font(int(16 * max(0.75, tile_height / 360)))
+    font = text_font(int(16 * max(0.75, tile_height / 360)))
     bar = _colour_bar(framing.height * len(cams) + head_h, vmax, None, scale=max(0.75, tile_height / 360))
     heads = []
     for name, c in cols:

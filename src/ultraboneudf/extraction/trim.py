@@ -14,7 +14,7 @@ import numpy as np
 import trimesh
 
 from ..geometry.neighbors import kd_tree
-from ..geometry.support import DataSurface
+from ..geometry.data_surface import DataSurface
 
 
 def unsupported_faces(mesh: trimesh.Trimesh, support: np.ndarray | DataSurface, max_distance: float,
@@ -22,7 +22,7 @@ def unsupported_faces(mesh: trimesh.Trimesh, support: np.ndarray | DataSurface, 
     """(F,) bool: the faces of ``mesh`` whose mean vertex distance to ``support`` is ≥
     ``max_distance`` (same units as the mesh; ≤ 0: no limit) — the support-trim rule. ``support``:
     points (N, 3) (distance to the nearest one) or a
-    :class:`~ultraboneudf.geometry.support.DataSurface` (distance to the surface bridged across the
+    :class:`~ultraboneudf.geometry.data_surface.DataSurface` (distance to the surface bridged across the
     data's gaps); with a ``DataSurface`` and ``max_normal`` > 0, also the faces whose mean vertex
     distance along the surface's normal is ≥ ``max_normal``."""
     if isinstance(support, DataSurface):

@@ -3,7 +3,7 @@
 A tracked sweep images the bone in planar slices. A gap *between* slices (the frame spacing, or a
 run of frames lost when the probe lifted or tracking dropped) is a place the probe did not look, so
 the bone goes on across it; a gap *inside* a slice is a place it looked and found no echo. The
-surface through the data (:mod:`~ultraboneudf.geometry.support`) bridges the first kind further
+surface through the data (:mod:`~ultraboneudf.geometry.data_surface`) bridges the first kind further
 than the second, and tells them apart by the gap's direction (along the image planes' normal) and
 by the frames on either side (consecutive ones: a frame in between would have looked).
 """

@@ -12,7 +12,7 @@ import torch
 from ..config import Config, LossConfig, TrainConfig, check_choices, model_widths, training_schedule
 from ..errors import InputError
 from ..fields.mlp import DistanceMLP, MLPField, count_parameters
-from ..geometry.support import DataSurface
+from ..geometry.data_surface import DataSurface
 from ..geometry.surface_fit import LocalPlanes
 from ..geometry.queries import anchors, gaussian_queries, grid_queries, query_spread, surface_subset_index
 from ..checkpoints import Checkpoint

@@ -8,8 +8,9 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from ..evaluation.render import DEFAULT_VMAX_MM, png_bytes, render_distance_image
+from ..evaluation.render import DEFAULT_VMAX_MM, render_distance_image
 from ..evaluation.viewer import viewer_html
+from ..pictures import png_bytes
 from .result import Registration
 
 

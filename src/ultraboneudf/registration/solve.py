@@ -98,19 +98,17 @@ def as_target_points(target: Any, seed: int = 0, source: str = "target") -> tupl
 
 
 def mesh_file(path: Path) -> trimesh.Trimesh | None:
-    """The mesh in ``path`` if it is a mesh file holding triangles, else ``None`` (a point cloud)."""
-    from ..io import load_mesh
+    """The mesh in ``path`` if it is a mesh file holding triangles, else ``None`` (a point cloud, or
+    no such file: the point reader says so). :class:`InputError` naming the file when it is
+    damaged (:func:`~ultraboneudf.io.read_mesh`)."""
+    from ..io import load_mesh, read_mesh
 
     suffix = path.suffix.lower()
     if suffix in (".stl", ".obj", ".off"):
         return load_mesh(path)
     if suffix != ".ply" or not path.is_file():
         return None
-    try:
-        loaded = trimesh.load(path, process=False)
-    except Exception:  # not readable as a mesh: the point reader says what is wrong
-        return None
-    return loaded if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces) else None
+    return read_mesh(path)
 
 
 def register(ct: Any, target: Any, *, init: np.ndarray | None = None, seed: int = 0,

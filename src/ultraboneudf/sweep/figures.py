@@ -1,30 +1,21 @@
 """Quality-control pictures for sweeps (Pillow only): segmentation overlays, contact sheets and
-a point-cloud splat render. Used by ``sweep2points --overlays`` and the docs figures."""
+a point-cloud splat render. Used by ``sweep2points --overlays`` and the docs figures; written with
+:func:`~ultraboneudf.pictures.save_picture`."""
 
 from __future__ import annotations
 
-import io
 import math
-import os
 from typing import Sequence
 
 import numpy as np
-from PIL import Image, ImageDraw, ImageFont
+from PIL import Image, ImageDraw
 from scipy.ndimage import maximum_filter
 
-from ..io import atomic_write_bytes
+from ..pictures import ramp, text_font
 
-FRAME_COLOURS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98],
-                          [253, 231, 37]], dtype=np.float64)
-"""A viridis-like ramp (5 stops) for colouring by frame index."""
-
-
-def ramp(t: np.ndarray) -> np.ndarray:
-    """``(N,)`` values in [0, 1] → ``(N, 3)`` uint8 colours along :data:`FRAME_COLOURS`."""
-    t = np.clip(np.asarray(t, dtype=np.float64), 0.0, 1.0) * (len(FRAME_COLOURS) - 1)
-    i = np.minimum(t.astype(int), len(FRAME_COLOURS) - 2)
-    f = (t - i)[:, None]
-    return np.rint(FRAME_COLOURS[i] * (1 - f) + FRAME_COLOURS[i + 1] * f).astype(np.uint8)
+FRAME_STOPS = ((0.0, (68, 1, 84)), (0.25, (59, 82, 139)), (0.5, (33, 145, 140)), (0.75, (94, 201, 98)),
+               (1.0, (253, 231, 37)))
+"""A viridis-like ramp for colouring by frame index (dark → light)."""
 
 
 def mark_dilation(image_width: int, tile_width: int) -> int:
@@ -59,7 +50,7 @@ def contact_sheet(tiles: Sequence[Image.Image], labels: Sequence[str] | None = N
                   columns: int = 5, tile_width: int = 320) -> Image.Image:
     """Grid of pictures scaled to ``tile_width`` pixels wide, each with an optional label (on a dark
     box, so it reads over bright tissue)."""
-    font = _font(max(11, min(18, tile_width // 20)))
+    font = text_font(max(11, min(18, tile_width // 20)))
     scaled = []
     for k, t in enumerate(tiles):
         h = max(1, round(t.size[1] * tile_width / t.size[0]))
@@ -76,13 +67,6 @@ def contact_sheet(tiles: Sequence[Image.Image], labels: Sequence[str] | None = N
     for k, im in enumerate(scaled):
         sheet.paste(im, ((k % columns) * tile_width, (k // columns) * th))
     return sheet
-
-
-def _font(size: int) -> ImageFont.ImageFont:
-    try:
-        return ImageFont.load_default(size=size)   # a scalable font (Pillow ≥ 10.1 with FreeType)
-    except (TypeError, OSError):
-        return ImageFont.load_default()
 
 
 def _splat(u: np.ndarray, v: np.ndarray, depth: np.ndarray, colours: np.ndarray,
@@ -122,7 +106,7 @@ def render_points(points: np.ndarray, values: np.ndarray | None = None, width: i
     mid = (hi + lo) / 2
     t = np.zeros(len(pts)) if values is None else np.asarray(values, dtype=np.float64)
     t = (t - t.min()) / max(float(t.max() - t.min()), 1e-12)
-    colours = ramp(t).astype(np.float64)
+    colours = np.rint(ramp(t, FRAME_STOPS))
     margin = 24
     panels = []
     for a_v, a_d, name in ((1, 2, "face (along a3)"), (2, 1, "profile (along a2)")):
@@ -196,29 +180,3 @@ def frames_with_mesh(sweep, masks: np.ndarray, mesh, frames: Sequence[int], colu
             im = im.crop((crop[0], crop[1], crop[0] + crop[2], crop[1] + crop[3]))
         tiles.append(im)
     return contact_sheet(tiles, [sweep.frame_names[i] for i in frames], columns=columns, tile_width=tile_width)
-
-
-MARKER_COLOURS = [(255, 40, 40), (60, 230, 90), (255, 255, 0), (255, 255, 255)]
-"""Overlay colours kept exact by :func:`save_png`'s ``greys`` palette (red, green, yellow, white)."""
-
-
-def save_png(image: Image.Image, path: str | os.PathLike, max_colours: int | None = None,
-             greys: int | None = None) -> None:
-    """Write a picture atomically: PNG (``max_colours``: adaptive palette; ``greys``: that many grey
-    levels plus the exact :data:`MARKER_COLOURS`, for overlays on ultrasound frames, which stay
-    small and keep their thin coloured lines), or JPEG (quality 85) when ``path`` ends in
-    ``.jpg``/``.jpeg``."""
-    buf = io.BytesIO()
-    if str(path).lower().endswith((".jpg", ".jpeg")):
-        image.convert("RGB").save(buf, format="JPEG", quality=85, optimize=True)
-    else:
-        if greys:
-            levels = np.linspace(0, 255, greys).round().astype(int)
-            pal = [c for g in levels for c in (g, g, g)] + [c for rgb in MARKER_COLOURS for c in rgb]
-            pal_img = Image.new("P", (1, 1))
-            pal_img.putpalette(pal + [0] * (768 - len(pal)))
-            image = image.convert("RGB").quantize(palette=pal_img, dither=Image.Dither.NONE)
-        elif max_colours:
-            image = image.convert("RGB").convert("P", palette=Image.Palette.ADAPTIVE, colors=max_colours)
-        image.save(buf, format="PNG", optimize=True)
-    atomic_write_bytes(path, buf.getvalue())

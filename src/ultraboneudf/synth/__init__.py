@@ -1,5 +1,5 @@
 """Synthetic data with known truth: the demo phantom, open views of closed meshes, and the sweep
-simulator (:mod:`.simulator`; its parameters in :mod:`.sweep_config`). The names below are
+simulator (:mod:`.simulator`; its parameters in :mod:`.simulation_config`). The names below are
 imported on first use (the command line's help needs the parameters, not trimesh)."""
 
 from __future__ import annotations

@@ -104,7 +104,7 @@ class SimulationConfig:
     gt_step_mm: float = 0.25
     """Largest spacing of the visible-truth pass's beams, across the image and along the sweep
     (poses interpolated between frames); on a mesh with fine faces the beams are spaced a sixth of
-    its median edge instead (:func:`~ultraboneudf.synth.simulator.truth_beam_spacing`)."""
+    its median edge instead (:func:`~ultraboneudf.synth.visible_truth.truth_beam_spacing`)."""
     seed: int = 0
     """Random seed: the same mesh, config and seed give the same sweep."""
 
