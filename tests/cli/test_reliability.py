@@ -412,7 +412,7 @@ CASES = [
                                                                  "10", "--resume", *FAST],
          "o.ply.ckpt: a checkpoint cut short or damaged", setup=_checkpoint("another run", cut=True)),
     Case("detector", C, "`--detector bad_key=1`", ["sweep2points", "sweep", "-o", "d.ply", "--detector", "bad_key=1"],
-         "--detector: unknown detector option(s) bad_key"),
+         "--detector 'bad_key=1': unknown detector option 'bad_key'"),
     Case("segment", C, "`--segment garbage.onnx`", ["sweep2points", "sweep", "-o", "g.ply", "--segment", "garbage.onnx"],
          "garbage.onnx: cannot load as an ONNX model", setup=_write("garbage.onnx", bytes(range(256)) * 8)),
     Case("masks", C, "`--masks` with 5 masks for 10 frames", ["sweep2points", "sweep", "-o", "m.ply", "--masks", "masks"],

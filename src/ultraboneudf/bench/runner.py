@@ -245,10 +245,10 @@ def _read_input(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray |
                 frames = np.asarray(data["frame"]) if "frame" in data.files else None
                 return load_points(path), np.asarray(data["probe"], dtype=np.float64), frames
     if path.is_dir() or path.suffix.lower() in (".mha", ".mhd", ".nrrd"):
-        from ..sweep import align_frames, sweep_to_points
+        from ..sweep.front_end import sweep_points
 
-        cp, _ = align_frames(sweep_to_points(path))
-        return cp.points, cp.probe_position, cp.frame_index
+        sp = sweep_points(path)
+        return sp.points, sp.probe_position, sp.frame_index
     points = load_points(path)
     return (points, *load_sweep_columns(path, len(points)))
 

@@ -11,8 +11,8 @@ from ..config import DEFAULT_PRESET, PRESET_HELP, PRESETS, UNITS_MM
 from ..errors import InputError
 from ..methods import NAMES
 from . import add_overwrite
-from .sweep_input import (add_sweep_options, check_sweep_options, read_options, sweep_inputs, sweep_options_given,
-                          sweep_points)
+from .sweep_input import (add_sweep_options, check_sweep_options, read_options, sweep_inputs, sweep_options,
+                          sweep_options_given)
 
 if TYPE_CHECKING:
     import numpy as np
@@ -161,9 +161,10 @@ def _run(args: argparse.Namespace, output: Path, overrides: dict, cloud, checkpo
     if checkpoint is not None and args.resume and not checkpoint.path.exists():
         progress.log(f"no checkpoint {checkpoint.path} yet: training starts at step 0")
     if cloud is None:
-        res = sweep_points(args.input, args, progress)
-        points, probe, frames, sweep_info = (res.points.points, res.points.probe_position,
-                                             res.points.frame_index, res.info)
+        from ..sweep.front_end import sweep_points
+
+        res = sweep_points(args.input, sweep_options(args), progress)
+        points, probe, frames, sweep_info = res.points, res.probe_position, res.frame_index, res.info
     else:
         (points, probe, frames), sweep_info = cloud, None
     rec = reconstruct(points, preset=args.preset, device=args.device, seed=args.seed, method=args.method,

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 from ..errors import InputError
 from . import add_overwrite
-from .sweep_input import add_sweep_options, check_sweep_options, read_options, sweep_inputs, sweep_points
+from .sweep_input import add_sweep_options, check_sweep_options, read_options, sweep_inputs, sweep_options
 
 if TYPE_CHECKING:
     import numpy as np
@@ -95,13 +95,15 @@ def _run(args: argparse.Namespace, out: Path) -> int:
 
     from ..io import encode_points, record, sha256_file, write_outputs
     from ..progress import Progress
+    from ..sweep.front_end import sweep_points
 
     progress = Progress(quiet=args.quiet)
-    res = sweep_points(args.sweep, args, progress, top_only=not args.all_pixels,
-                       remove_outliers=not args.no_outliers, outlier_rule=args.outlier_rule,
-                       outlier_k=args.outlier_k, outlier_std=args.outlier_std,
-                       outlier_factor=args.outlier_factor, frame_step=args.frame_step)
-    cp, sweep = res.points, res.sweep
+    options = sweep_options(args, top_only=not args.all_pixels, remove_outliers=not args.no_outliers,
+                            outlier_rule=args.outlier_rule, outlier_k=args.outlier_k,
+                            outlier_std=args.outlier_std, outlier_factor=args.outlier_factor,
+                            frame_step=args.frame_step)
+    res = sweep_points(args.sweep, options, progress)
+    cp, sweep = res.cloud, res.sweep
     meta = record("sweep2points", input={"path": str(args.sweep.resolve()), "sha256": sha256_file(args.sweep)},
                   options={k: str(v) for k, v in sorted(vars(args).items()) if k not in ("func", "output")},
                   sweep=res.info)
@@ -113,7 +115,7 @@ def _run(args: argparse.Namespace, out: Path) -> int:
     frames_with_bone = len(np.unique(cp.frame_index))
     lo, hi = cp.points.min(axis=0), cp.points.max(axis=0)
     print(f"sweep2points: {len(cp)} points from {frames_with_bone}/{sweep.n_frames} frames "
-          f"(segmentation: {res.method}); extent {np.round(hi - lo, 1).tolist()} mm; wrote {out} and "
+          f"(segmentation: {res.segmentation}); extent {np.round(hi - lo, 1).tolist()} mm; wrote {out} and "
           f"its sidecar {out.name}.json")
     if sheets:
         print(f"sweep2points: wrote {-(-sweep.n_frames // 30)} overlay sheet(s) to {args.overlays}")
