@@ -401,7 +401,7 @@ CASES = [
     Case("update-docs", C, "`config --update-docs missing.md`", ["config", "--update-docs", "missing.md"],
          "missing.md: no such file"),
     Case("ckpt-method", C, "`--checkpoint-every` with a method that cannot resume",
-         [*R, "in.xyz", "-o", "o.ply", "--method", "funsr", "--checkpoint-every", "10"], "--method funsr cannot checkpoint"),
+         [*R, "in.xyz", "-o", "o.ply", "--method", "funsr", "--checkpoint-every", "10"], "method funsr cannot checkpoint its training"),
     Case("ckpt-other", C, "`--resume` with a checkpoint of another run (input, preset, `--set`, method, seed)",
          [*R, "in.xyz", "-o", "o.ply", "--checkpoint-every", "10", "--resume", *FAST],
          "o.ply.ckpt: this checkpoint was made by another run", setup=_checkpoint("another run")),

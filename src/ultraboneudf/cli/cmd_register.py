@@ -130,7 +130,7 @@ def _read_target(args: argparse.Namespace, progress) -> tuple[Any, dict[str, Any
 
     overrides = {} if args.iters is None else {"train.iters": args.iters}
     rec = reconstruct(points, preset=args.preset, device=args.device, seed=args.seed, progress=progress,
-                      source=str(path), probe_positions=probe, frame_index=frames, **overrides)
+                      source=str(path), probe_positions=probe, frame_index=frames, warn=False, **overrides)
     if rec.mesh is None:
         raise InputError(f"{path}: the reconstruction found no surface; register to its points with "
                          f"--no-reconstruct, or reconstruct it yourself and pass the mesh")

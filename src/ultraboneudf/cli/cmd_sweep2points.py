@@ -13,6 +13,8 @@ from .sweep_input import add_sweep_options, check_sweep_options, read_options, s
 if TYPE_CHECKING:
     import numpy as np
 
+    from ..sweep.front_end import SweepOptions
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -90,6 +92,13 @@ def run(args: argparse.Namespace) -> int:
     return _run(args, out)
 
 
+def front_end_options(args: argparse.Namespace) -> "SweepOptions":
+    """The front end's options: the sweep options, and this command's own."""
+    return sweep_options(args, top_only=not args.all_pixels, remove_outliers=not args.no_outliers,
+                         outlier_rule=args.outlier_rule, outlier_k=args.outlier_k, outlier_std=args.outlier_std,
+                         outlier_factor=args.outlier_factor, frame_step=args.frame_step)
+
+
 def _run(args: argparse.Namespace, out: Path) -> int:
     import numpy as np
 
@@ -98,11 +107,7 @@ def _run(args: argparse.Namespace, out: Path) -> int:
     from ..sweep.front_end import sweep_points
 
     progress = Progress(quiet=args.quiet)
-    options = sweep_options(args, top_only=not args.all_pixels, remove_outliers=not args.no_outliers,
-                            outlier_rule=args.outlier_rule, outlier_k=args.outlier_k,
-                            outlier_std=args.outlier_std, outlier_factor=args.outlier_factor,
-                            frame_step=args.frame_step)
-    res = sweep_points(args.sweep, options, progress)
+    res = sweep_points(args.sweep, front_end_options(args), progress)
     cp, sweep = res.cloud, res.sweep
     meta = record("sweep2points", input={"path": str(args.sweep.resolve()), "sha256": sha256_file(args.sweep)},
                   options={k: str(v) for k, v in sorted(vars(args).items()) if k not in ("func", "output")},

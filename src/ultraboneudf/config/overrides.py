@@ -85,6 +85,7 @@ def coerce(hint: Any, value: Any, key: str, what: str = "config key") -> Any:
         if value is None or (isinstance(value, str) and value.strip().lower() in ("none", "null")):
             return None
         return coerce(_optional(hint), value, key, what)
+    given = value
     try:
         if typing.get_origin(hint) is tuple:
             if isinstance(value, str):
@@ -116,7 +117,7 @@ def coerce(hint: Any, value: Any, key: str, what: str = "config key") -> Any:
             raise ValueError(value)
         return value
     except (ValueError, TypeError, OverflowError, json.JSONDecodeError):
-        raise InputError(f"bad value {value!r} for {what} {key!r} (expected {_expected(hint)})") from None
+        raise InputError(f"bad value {given!r} for {what} {key!r} (expected {_expected(hint)})") from None
 
 
 def set_value(cfg: Config, key: str, value: Any) -> None:

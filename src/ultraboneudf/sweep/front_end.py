@@ -198,7 +198,8 @@ def sweep_points(source: Sweep | str | os.PathLike, options: SweepOptions | None
     when ``None``) say.
 
     ``source`` is a sweep folder or sequence file (PLUS .mha/.mhd/.igs.nrrd, Slicer .seq.nrrd,
-    UltraBones100k folder), or a :class:`Sweep` in memory (then no reading option may be set).
+    UltraBones100k folder), or a :class:`Sweep` in memory (then no pose-chain option nor
+    ``mask_dir`` may be set).
     ``model_options``: further options of a learned model (:class:`~.learned.LearnedSegmenter`)
     beside ``options.threshold``.
 
@@ -207,7 +208,7 @@ def sweep_points(source: Sweep | str | os.PathLike, options: SweepOptions | None
     """
     o = options if options is not None else SweepOptions()
     if isinstance(source, Sweep):
-        given = [k for k in (*CHAIN_OPTIONS, "masks", "mask_dir") if getattr(o, k)]
+        given = [k for k in (*CHAIN_OPTIONS, "mask_dir") if getattr(o, k)]
         if given:
             raise TypeError(f"sweep options {given} read a sweep from a file, not a Sweep in memory")
         sweep, name, where = source, source.source or "sweep", source.source or "sweep"
