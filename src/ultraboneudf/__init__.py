@@ -25,7 +25,7 @@ _WHERE = {
     "EvalResult": "evaluation", "evaluate": "evaluation",
     "load_mesh": "io", "load_points": "io", "save_mesh": "io",
     "Reconstruction": "pipeline", "reconstruct": "pipeline", "reconstruct_many": "pipeline",
-    "FittedSurface": "pipeline", "fit": "pipeline",
+    "FittedSurface": "pipeline", "fit": "pipeline", "configure": "pipeline", "FitIssue": "pipeline",
     "Registration": "registration", "register": "registration",
     "SweepOptions": "sweep.front_end", "SweepPoints": "sweep.front_end", "sweep_points": "sweep.front_end",
 }

@@ -16,7 +16,7 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Mapping, Sequence
+from typing import Any, Callable, Literal, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -80,17 +80,21 @@ class FitIssue:
                 else "surface the data does not support")
         return f"{share} of the mesh area is {d} or more from every input point: {what}"
 
+    def text(self, argument: Callable[[str], str], setting: Callable[[str, float], str]) -> str:
+        """:meth:`describe` and the advice, each name spelled by a front end: ``argument(name)``
+        for a run argument (``seed``), ``setting(key, value)`` for a configuration value."""
+        text = self.describe()
+        if self.retry:
+            text += "; try another " + " or ".join(argument(name) for name in self.retry)
+        if self.setting is not None:
+            text += f"; {setting(*self.setting)} {self.effect}"
+        return text
+
 
 def python_text(issue: FitIssue) -> str:
-    """``issue`` for Python users: its description and the advice as arguments of
-    :func:`reconstruct` (``seed=``, ``extract__trim_mm=3``)."""
-    text = issue.describe()
-    if issue.retry:
-        text += "; try another " + " or ".join(f"{name}=" for name in issue.retry)
-    if issue.setting is not None:
-        key, value = issue.setting
-        text += f"; {key.replace('.', '__')}={value:g} {issue.effect}"
-    return text
+    """``issue`` for Python users: the advice as arguments of :func:`reconstruct` (``seed=``,
+    ``extract__trim_mm=3``)."""
+    return issue.text(lambda name: f"{name}=", lambda key, value: f"{key.replace('.', '__')}={value:g}")
 
 
 @dataclass

@@ -9,13 +9,7 @@ from typing import Any, TextIO
 
 def cli_text(issue: Any) -> str:
     """``issue`` described, with the flags that address it."""
-    text = issue.describe()
-    if issue.retry:
-        text += "; try another " + " or ".join(f"--{name}" for name in issue.retry)
-    if issue.setting is not None:
-        key, value = issue.setting
-        text += f"; --set {key}={value:g} {issue.effect}"
-    return text
+    return issue.text(lambda name: f"--{name}", lambda key, value: f"--set {key}={value:g}")
 
 
 def print_fit_issues(rec: Any, prefix: str, file: TextIO | None = None) -> None:

@@ -392,7 +392,7 @@ class PoissonConfig(_Section):
     """The Poisson library: ``auto`` (first installed of pymeshlab, open3d), ``pymeshlab`` or ``open3d``."""
     solver_threads: int = 0
     """Solver threads; 0 = ``torch.get_num_threads()``. On an oversubscribed CPU the OpenMP
-    solver slows down > 10× with 2 threads (measured 2 s → 34 s); use 1 there."""
+    solver slows down more than tenfold with 2 threads; use 1 there."""
 
 
 @dataclass
