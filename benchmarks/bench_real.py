@@ -10,10 +10,10 @@ Inputs (paths given on the command line, mm, each in the frame of its CT):
   the public UltraBones100k repository (``CT-US bone alignment optimization/record_folder``: its
   ``UltrasoundImages`` as ``frames/``, ``sweep_initial.csv`` as ``poses.csv`` and the calibration of
   the sample, ``docs/sweep.md``) with ``CT_models/Fibula.stl``. ``--frame-steps 1,3,10`` takes every
-  k-th frame. Each step's points come from the front end (``ultraboneudf.sweep_points``: segmentation, compounding, the front
-  end's filters, frame registration), cached under ``--cache``, and are reconstructed twice: with
-  each point's probe position and frame (``sweep``: what ``reconstruct SWEEP`` does) and without
-  (``cloud``: what a user with only the cloud gets).
+  k-th frame. Each step's points come from the front end (``ultraboneudf.sweep_points``:
+  segmentation, compounding, the front end's filters, frame registration), cached under
+  ``--cache``, and are reconstructed twice: with each point's probe position and frame (``sweep``:
+  what ``reconstruct SWEEP`` does) and without (``cloud``: what a user with only the cloud gets).
 
 Scores, as the paper scores real data (every distance over ``--samples`` area samples of each mesh):
 pseudo ground truth (pGT) = the CT surface within 2 mm of an input point; ``cd_mm`` = ½(mean mesh →

@@ -16,7 +16,6 @@ from ..errors import InputError
 if TYPE_CHECKING:
     from ..sweep.front_end import SweepOptions
 
-CHAIN_OPTIONS = ("calibration", "transform", "reference", "image_frame", "transforms")
 
 
 def add_sweep_options(p: argparse.ArgumentParser) -> None:
@@ -183,6 +182,8 @@ def _mask_array_frames(masks: Path) -> int | None:
 
 def sweep_options_given(args: argparse.Namespace) -> list[str]:
     """The sweep options set on the command line (to reject them for a point cloud input)."""
+    from ..sweep.front_end import CHAIN_OPTIONS
+
     given = [name for name in CHAIN_OPTIONS if getattr(args, name, None)]
     given += [name for name in ("masks", "mask_dir") if getattr(args, name, None) is not None]
     if getattr(args, "segment", "auto") != "auto":
