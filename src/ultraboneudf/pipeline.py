@@ -236,12 +236,12 @@ def reconstruct(points_mm: Any, preset: str | None = None, device: str | torch.d
     progress / quiet : a :class:`Progress` to report to, or ``quiet=False`` for a default one.
     source : the name used in error messages (a file name).
     probe_positions : optional (N, 3) array-like, mm in the same frame as ``points_mm``: row ``i`` is
-        the position of the probe that imaged point ``i`` (``CompoundedPoints.probe_position`` from
-        :func:`ultraboneudf.sweep.sweep_to_points`). Voxel-averaged with the points and normalised
+        the position of the probe that imaged point ``i`` (``SweepPoints.probe_position`` from
+        :func:`ultraboneudf.sweep_points`). Voxel-averaged with the points and normalised
         with the same map. Used by methods that can (Poisson orients its normals toward the probe,
         ``poisson.orientation``); ignored by the others.
     frame_index : optional (N,) integers, with ``probe_positions``: the frame (image) that imaged
-        each point (``CompoundedPoints.frame_index``). The surface through the data then bridges the
+        each point (``SweepPoints.frame_index``). The surface through the data then bridges the
         gaps between consecutive frames further than those inside one, and does not reach past the
         sweep's first and last image planes (``data.frame_bridge``).
     checkpoint : save the training's state every ``checkpoint.every`` steps to ``checkpoint.path``
