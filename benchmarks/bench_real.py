@@ -10,10 +10,10 @@ Inputs (paths given on the command line, mm, each in the frame of its CT):
   the public UltraBones100k repository (``CT-US bone alignment optimization/record_folder``: its
   ``UltrasoundImages`` as ``frames/``, ``sweep_initial.csv`` as ``poses.csv`` and the calibration of
   the sample, ``docs/sweep.md``) with ``CT_models/Fibula.stl``. ``--frame-steps 1,3,10`` takes every
-  k-th frame. Each step's points come from ``sweep2points`` (segmentation, compounding, the front
-  end's filters, frame registration), cached under ``--cache``, and are reconstructed twice: with
-  each point's probe position and frame (``sweep``: what ``reconstruct SWEEP`` does) and without
-  (``cloud``: what a user with only the cloud gets).
+  k-th frame. Each step's points come from the front end (``ultraboneudf.sweep_points``:
+  segmentation, compounding, the front end's filters, frame registration), cached under
+  ``--cache``, and are reconstructed twice: with each point's probe position and frame (``sweep``:
+  what ``reconstruct SWEEP`` does) and without (``cloud``: what a user with only the cloud gets).
 
 Scores, as the paper scores real data (every distance over ``--samples`` area samples of each mesh):
 pseudo ground truth (pGT) = the CT surface within 2 mm of an input point; ``cd_mm`` = ½(mean mesh →
@@ -162,19 +162,19 @@ def clouds_from(args: argparse.Namespace) -> list[tuple[str, Path, Path]]:
     return out
 
 
-def sweep_points(sweep: Path, step: int, cache: Path, seed_log) -> Path:
-    """The sweep's points at every ``step``-th frame (``sweep2points``), cached as PLY with each
-    point's probe position and frame."""
+def sweep_cloud(sweep: Path, step: int, cache: Path, seed_log) -> Path:
+    """The sweep's points at every ``step``-th frame (the front end,
+    :func:`ultraboneudf.sweep_points`, with its defaults), cached as PLY with each point's probe
+    position and frame, as ``sweep2points`` writes them."""
     out = cache / f"{sweep.name}_step{step}.ply"
     if not out.exists():
-        import subprocess
+        from ultraboneudf import SweepOptions, sweep_points
+        from ultraboneudf.io import atomic_write_bytes, encode_points
 
         cache.mkdir(parents=True, exist_ok=True)
-        cmd = [sys.executable, "-m", "ultraboneudf.cli", "sweep2points", str(sweep), "-o", str(out),
-               "--frame-step", str(step), "--quiet"]
         t0 = time.perf_counter()
-        subprocess.run(cmd, check=True)
-        seed_log(f"sweep2points every {step}th frame: {time.perf_counter() - t0:.0f} s")
+        atomic_write_bytes(out, encode_points(out, sweep_points(sweep, SweepOptions(frame_step=step)).cloud))
+        seed_log(f"sweep points every {step}th frame: {time.perf_counter() - t0:.0f} s")
     return out
 
 
@@ -252,7 +252,7 @@ def main() -> None:
         if not args.ct:
             sys.exit("--sweep needs --ct (the CT mesh of the bone to score)")
         for step in (int(s) for s in args.frame_steps.split(",")):
-            path = sweep_points(args.sweep, step, args.cache, log)
+            path = sweep_cloud(args.sweep, step, args.cache, log)
             points = load_points(path)
             probe, frames = load_sweep_columns(path, len(points))
             case = f"{args.sweep.name}/{step}"

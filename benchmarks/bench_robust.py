@@ -105,13 +105,13 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
         if level in SWEEP_LEVELS:
             from dataclasses import asdict
 
-            from ultraboneudf.sweep import sweep_to_points
+            from ultraboneudf.sweep.front_end import SweepOptions, sweep_points
             from ultraboneudf.synth.simulator import simulate_sweep
 
             sim = simulate_sweep(mesh, sim_cfg)
             truth = sim.visible_mesh
-            arrays = asdict(sweep_to_points(sim.sweep, segment="masks", remove_outliers=False,
-                                            remove_fragments=False))
+            raw = SweepOptions(segment="masks", remove_outliers=False, drop_fragments=False, align_frames=False)
+            arrays = asdict(sweep_points(sim.sweep, raw).cloud)
         else:
             truth = facing_surface(mesh, (0.0, 0.0, 1.0))
             points = trimesh.sample.sample_surface(truth, 100_000, seed=seed)[0]
@@ -126,18 +126,10 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
     if level not in SWEEP_LEVELS:
         return data["points"], None, truth, None
     from ultraboneudf.sweep.compound import CompoundedPoints
-    from ultraboneudf.sweep.consistency import drop_unconfirmed_fragments
-    from ultraboneudf.sweep.points import drop_outliers
+    from ultraboneudf.sweep.front_end import SweepOptions, clean_points
 
-    cp = CompoundedPoints(**data)
-    # the front end's defaults, as sweep_to_points has them
-    cp = drop_outliers(cp)
-    if not no_fragments:
-        cp = drop_unconfirmed_fragments(cp)[0]
-    if align:
-        from ultraboneudf.sweep import align_frames
-
-        cp, _ = align_frames(cp)
+    # the front end's own steps after compounding, with its defaults
+    cp = clean_points(CompoundedPoints(**data), SweepOptions(drop_fragments=not no_fragments, align_frames=align))[0]
     if cloud_only:
         return cp.points, None, truth, None
     return cp.points, cp.probe_position, truth, cp.frame_index

@@ -1,4 +1,5 @@
 import json
+import re
 from dataclasses import fields
 
 import numpy as np
@@ -200,3 +201,33 @@ def test_the_budget_follows_the_device_unless_set():
     assert cfg.train.iters == 10_000 and cfg.loss.os_rows == 256          # the config is not changed
     official = preset("official")
     assert training_schedule(official.loss, official.train, "cuda") == (official.loss, official.train)
+
+
+def test_one_key_value_parser_names_the_option_the_item_and_the_problem():
+    from ultraboneudf.config import parse_key_values
+
+    assert parse_key_values(["a=1", " b = x,y ", "a=2"], "--opt") == {"a": "2", "b": "x,y"}
+    types = {"n": int, "size": float, "axis": tuple[float, ...], "name": str | None}
+    assert parse_key_values(["n=3", "size=0.5", "axis=1,0,0", "name=none"], "--opt", types, "thing") == \
+        {"n": 3, "size": 0.5, "axis": (1.0, 0.0, 0.0), "name": None}
+    for item, message in (("n", "--opt 'n': expected KEY=VALUE"), ("=3", "--opt '=3': expected KEY=VALUE"),
+                          ("m=1", "--opt 'm=1': unknown thing 'm'; things: axis, n, name, size"),
+                          ("n=1.5", "--opt 'n=1.5': bad value '1.5' for thing 'n' (expected an integer)"),
+                          ("size=big", "--opt 'size=big': bad value 'big' for thing 'size' (expected a number)")):
+        with pytest.raises(InputError) as err:
+            parse_key_values([item], "--opt", types, "thing")
+        assert str(err.value) == message
+
+
+def test_the_parser_serves_set_simulate_and_detector_alike():
+    from ultraboneudf.cli.cmd_simulate import parse_assignments
+    from ultraboneudf.cli.sweep_input import parse_kv
+
+    assert parse_kv(["high=0.4", "min_depth_mm=8"]) == {"high": 0.4, "min_depth_mm": 8.0}
+    for call, item, words in ((parse_kv, "high=x", "--detector 'high=x': bad value 'x' for detector option 'high'"),
+                              (parse_kv, "bogus=1", "--detector 'bogus=1': unknown detector option 'bogus'"),
+                              (parse_assignments, "seed=1.5", "--set 'seed=1.5': bad value '1.5' for simulator option"),
+                              (lambda items: apply_overrides(preset("fast"), None, items), "train.nope=1",
+                               "--set 'train.nope=1': unknown config key 'train.nope'")):
+        with pytest.raises(InputError, match=re.escape(words)):
+            call([item])

@@ -94,26 +94,39 @@ def test_sidecar_contents(small_run, tmp_path):
     assert (tmp_path / "m.obj").exists() and (tmp_path / "m.obj.json").exists()
 
 
-def test_fit_warnings_name_what_is_missing_or_unsupported(small_run):
+def test_fit_issues_name_what_is_missing_or_unsupported(small_run):
+    from ultraboneudf.cli.fit_hints import cli_text
+    from ultraboneudf.pipeline import FitIssue
+
     rec = small_run
-    assert rec.fit_warnings(limit=1.0) == []
+    assert rec.fit_issues(limit=1.0) == [] and rec.fit_warnings(limit=1.0) == []
     bad = dataclasses.replace(rec, data_fit={"threshold_mm": 3.0, "input_far_fraction": 0.097,
                                              "input_p95_mm": 37.0, "mesh_far_area_fraction": 0.21})
+    far, loose = bad.fit_issues()
+    # the data: what was measured, against which threshold, why, and what addresses it
+    assert far == FitIssue("input_far", 0.097, 0.01, 3.0, "fit", retry=("seed", "preset"))
+    assert (loose.kind, loose.value, loose.threshold, loose.distance_mm, loose.units) == \
+        ("mesh_far", 0.21, 0.01, 3.0, "fraction")
+    assert loose.cause == "unsupported" and loose.setting is None  # the trim is already on
+    assert [i.kind for i in bad.fit_issues(limit=0.1)] == ["mesh_far"]
+    # each front end phrases them for its users
     missing, unsupported = bad.fit_warnings()
     assert missing.startswith("9.7% of the input points are more than 3 mm from the mesh")
     assert unsupported.startswith("21.0% of the mesh area is 3 mm or more from every input point")
-    assert unsupported.endswith("surface the data does not support")  # the trim is already on
+    assert unsupported.endswith("surface the data does not support") and cli_text(loose) == unsupported
     # the advice depends on the configuration that made the mesh
     for section, key, value, cli, python in (
             ("extract", "trim_mm", 0.0, "--set extract.trim_mm=3 removes it", "extract__trim_mm=3 removes it"),
-            ("data", "bridge", 1.0, "--set data.bridge=0 leaves the gaps open)", "data__bridge=0 leaves the gaps open)")):
+            ("data", "bridge", 1.0, "--set data.bridge=0 leaves the gaps open", "data__bridge=0 leaves the gaps open")):
         cfg = ultraboneudf.Config.from_dict(rec.config.to_dict())
         setattr(getattr(cfg, section), key, value)
-        assert dataclasses.replace(bad, config=cfg).fit_warnings(cli=True)[1].endswith(cli)
+        issue = dataclasses.replace(bad, config=cfg).fit_issues()[1]
+        assert issue.setting == (f"{section}.{key}", 3.0 if key == "trim_mm" else 0.0)
+        assert cli_text(issue).endswith(cli)
         assert dataclasses.replace(bad, config=cfg).fit_warnings()[1].endswith(python)
     assert missing.endswith("try another seed= or preset=")
-    assert bad.fit_warnings(cli=True)[0].endswith("try another --seed or --preset")
-    assert dataclasses.replace(rec, data_fit={}).fit_warnings() == []
+    assert cli_text(far).endswith("try another --seed or --preset")
+    assert dataclasses.replace(rec, data_fit={}).fit_issues() == []
 
 
 def test_a_mesh_that_misses_its_input_is_a_python_warning():
@@ -300,3 +313,25 @@ def test_max_voxels_coarsens_the_voxel_until_the_cloud_fits():
     assert np.median(radial) < 0.5
     plain = ultraboneudf.reconstruct(pts[:2_000], preset="fast", device="cpu", seed=3, **SMALL)
     assert plain.counts["voxel_size_mm"] == 0.1   # no limit: the voxel as configured
+
+
+def test_configure_gives_the_complete_configuration_reconstruct_takes_as_it_is(small_run):
+    """configure() applies the method's defaults and the overrides once; handed to
+    reconstruct(config=...) it is used as it is: the same configuration, and the same mesh, as the
+    preset and overrides given to reconstruct; the caller's config is not changed."""
+    from ultraboneudf.pipeline import configure
+
+    cfg = configure("fast", "ultraboneudf", SMALL)
+    assert cfg == small_run.config
+    before = ultraboneudf.Config.from_dict(cfg.to_dict())
+    rec = ultraboneudf.reconstruct(patch_points(), preset="fast", config=cfg, device="cpu", seed=3)
+    assert rec.config == small_run.config and rec.preset == "fast" and cfg == before
+    np.testing.assert_array_equal(rec.mesh.vertices, small_run.mesh.vertices)
+    np.testing.assert_array_equal(rec.mesh.faces, small_run.mesh.faces)
+    # a method's defaults are applied by configure, not again by reconstruct
+    capudf = configure("robust", "capudf", assignments=["train.iters=30"])
+    assert capudf.grid.resolution == 128 and capudf.train.iters == 30
+    assert configure(config=capudf) == capudf and configure(config=capudf) is not capudf
+    assert configure("robust", "capudf", config=capudf, overrides={"train.iters": 40}).train.iters == 40
+    with pytest.raises(InputError, match="method funsr cannot checkpoint its training"):
+        configure("fast", "funsr", checkpoint=True)

@@ -1,12 +1,14 @@
 """``reconstruct``: points (mm) → pre-processing → method → extraction → mesh (mm).
 
-This is the one place where the cloud is normalised (:class:`Normalizer` fitted on the voxelised
-cloud) and the one place where the mesh is mapped back to millimetres. Optional per-point probe
-positions (from a tracked sweep) follow the points through voxelisation and the same normalisation.
+The pre-processing in mm and the normalisation into unit space are :func:`~.preprocess.prepare`'s
+(optional per-point probe positions and frames of a tracked sweep follow the points); this module
+resolves the configuration, fits the method, extracts the mesh and maps it back to millimetres with
+the inverse of that one normalisation (:func:`_trim_and_map`).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import random
@@ -14,7 +16,7 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Literal, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -22,28 +24,77 @@ import trimesh
 
 from ._version import __version__
 from .checkpoints import Checkpoint
-from .config import (DEFAULT_PRESET, CleanConfig, Config, DataConfig, ExtractConfig, GridConfig, apply_overrides,
+from .config import (DEFAULT_PRESET, CleanConfig, Config, ExtractConfig, GridConfig, apply_overrides,
                      preset as make_preset, validate)
 from .devices import resolve_device
 from .errors import FitWarning, InputError
 from .evaluation.data_fit import data_fit
 from .extraction import extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
-from .geometry.echo_layers import false_echoes
-from .geometry.frames import frame_axes, sweep_ends
 from .geometry.normalize import Normalizer
 from .geometry.data_surface import DataSurface
-from .geometry.surface_fit import LocalPlanes, fit_local_planes, shadowed, steep_echoes
-from .geometry.voxel import voxel_downsample, voxel_downsample_with
-from .io import check_outputs, check_units, save_mesh_with_sidecar, validate_points
+from .io import check_outputs, save_mesh_with_sidecar
 from .methods import Fitted, get_method
 from .methods import ultraboneudf as ubu
+from .preprocess import UnitCloud, prepare
 from .progress import Progress
 
-# A steep face's few echoes are kept unless another point lies this far (to 10 mm) above them on
-# their beam: a neighbouring scan line meets a face 80° from the beam up to about 3 mm higher
-# within the shadow test's half millimetre of it (geometry.surface_fit.steep_echoes).
-_STEEP_ECHO_SHADOW_MM = 3.0
+FIT_LIMIT = 0.01
+"""A ``data_fit`` fraction above this is a :class:`FitIssue`."""
+
+
+@dataclass(frozen=True)
+class FitIssue:
+    """One way a mesh does not fit its input, from its ``data_fit`` figures
+    (:func:`~ultraboneudf.evaluation.data_fit.data_fit`); each front end phrases it for its users
+    (:func:`python_text`; the command line its own)."""
+
+    kind: Literal["input_far", "mesh_far"]
+    """``input_far``: input points far from the mesh; ``mesh_far``: mesh area far from every input
+    point."""
+    value: float
+    """The share measured: of the input points (``input_far``) or of the mesh area (``mesh_far``)."""
+    threshold: float
+    """The share above which it is an issue."""
+    distance_mm: float
+    """How far counts as far, mm (``extract.fit_mm``)."""
+    cause: Literal["fit", "unsupported", "bridged"]
+    """``fit``: the field did not fit there, the mesh stops short of the data's rim, or the points
+    are outliers; ``unsupported``: surface the data does not support; ``bridged``: surface
+    interpolated across gaps in the data (``data.bridge``)."""
+    setting: tuple[str, float] | None = None
+    """A configuration key and the value that addresses the issue (``("extract.trim_mm", 3.0)``)."""
+    effect: str = ""
+    """What that value does (``removes it``)."""
+    retry: tuple[str, ...] = ()
+    """Run arguments another value of which may avoid the issue (``seed``, ``preset``)."""
+    units: str = "fraction"
+
+    def describe(self) -> str:
+        """What was measured and what it means, without advice (the same for every audience)."""
+        share, d = f"{100 * self.value:.1f}%", f"{self.distance_mm:g} mm"
+        if self.kind == "input_far":
+            return (f"{share} of the input points are more than {d} from the mesh (the field did not fit "
+                    "there, the mesh stops short of the data's rim, or the points are outliers)")
+        what = ("surface interpolated across gaps in the data (data.bridge)" if self.cause == "bridged"
+                else "surface the data does not support")
+        return f"{share} of the mesh area is {d} or more from every input point: {what}"
+
+    def text(self, argument: Callable[[str], str], setting: Callable[[str, float], str]) -> str:
+        """:meth:`describe` and the advice, each name spelled by a front end: ``argument(name)``
+        for a run argument (``seed``), ``setting(key, value)`` for a configuration value."""
+        text = self.describe()
+        if self.retry:
+            text += "; try another " + " or ".join(argument(name) for name in self.retry)
+        if self.setting is not None:
+            text += f"; {setting(*self.setting)} {self.effect}"
+        return text
+
+
+def python_text(issue: FitIssue) -> str:
+    """``issue`` for Python users: the advice as arguments of :func:`reconstruct` (``seed=``,
+    ``extract__trim_mm=3``)."""
+    return issue.text(lambda name: f"{name}=", lambda key, value: f"{key.replace('.', '__')}={value:g}")
 
 
 @dataclass
@@ -114,37 +165,33 @@ class Reconstruction:
             "loss_history": self.history,
         }
 
-    def fit_warnings(self, limit: float = 0.01, cli: bool = False) -> list[str]:
-        """One sentence per ``data_fit`` figure above ``limit`` (a fraction): input the mesh does not
-        reach, or mesh area far from every input point. Empty when the mesh fits its input. The
-        advice is spelled for Python (``seed=``, ``extract__trim_mm=``) or, with ``cli``, for the
-        command line (``--seed``, ``--set extract.trim_mm=``). :func:`reconstruct` also issues each
-        as a :class:`~ultraboneudf.errors.FitWarning`."""
+    def fit_issues(self, limit: float = FIT_LIMIT) -> list[FitIssue]:
+        """The ways the mesh does not fit its input (``data_fit`` figures above ``limit``, a fraction):
+        input the mesh does not reach, mesh area far from every input point. Empty when the mesh
+        fits, or when the figures are off (``extract.fit_mm = 0``)."""
         fit, out = self.data_fit, []
         if not fit:
             return out
-
-        def setting(key: str, value: str) -> str:
-            return f"--set {key}={value}" if cli else f"{key.replace('.', '__')}={value}"
-
         t = fit["threshold_mm"]
         if fit["input_far_fraction"] > limit:
-            advice = "another --seed or --preset" if cli else "another seed= or preset="
-            out.append(f"{100 * fit['input_far_fraction']:.1f}% of the input points are more than {t:g} mm "
-                       "from the mesh (the field did not fit there, the mesh stops short of the data's "
-                       f"rim, or the points are outliers); try {advice}")
+            out.append(FitIssue("input_far", fit["input_far_fraction"], limit, t, "fit", retry=("seed", "preset")))
         if fit["mesh_far_area_fraction"] > limit:
-            text = (f"{100 * fit['mesh_far_area_fraction']:.1f}% of the mesh area is {t:g} mm or more "
-                    "from every input point: ")
             if self.config.extract.trim_mm <= 0:
-                text += f"surface the data does not support; {setting('extract.trim_mm', f'{t:g}')} removes it"
+                issue = FitIssue("mesh_far", fit["mesh_far_area_fraction"], limit, t, "unsupported",
+                                 setting=("extract.trim_mm", t), effect="removes it")
             elif self.config.data.bridge > 0:
-                text += (f"surface interpolated across gaps in the data (data.bridge; "
-                         f"{setting('data.bridge', '0')} leaves the gaps open)")
+                issue = FitIssue("mesh_far", fit["mesh_far_area_fraction"], limit, t, "bridged",
+                                 setting=("data.bridge", 0.0), effect="leaves the gaps open")
             else:
-                text += "surface the data does not support"
-            out.append(text)
+                issue = FitIssue("mesh_far", fit["mesh_far_area_fraction"], limit, t, "unsupported")
+            out.append(issue)
         return out
+
+    def fit_warnings(self, limit: float = FIT_LIMIT) -> list[str]:
+        """:meth:`fit_issues` as sentences for Python users (the text of the
+        :class:`~ultraboneudf.errors.FitWarning` that :func:`reconstruct` issues), the advice spelled
+        as arguments of :func:`reconstruct` (``seed=``, ``extract__trim_mm=``)."""
+        return [python_text(issue) for issue in self.fit_issues(limit)]
 
     def save(self, path: str | Path) -> Path:
         """Write the mesh (format by suffix) and its sidecar ``NAME.EXT.json`` as a pair
@@ -163,11 +210,11 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torch.device = "auto",
+def reconstruct(points_mm: Any, preset: str | None = None, device: str | torch.device = "auto",
                 seed: int = 42, method: str = "ultraboneudf", *, config: Config | None = None,
                 assignments: list[str] | tuple[str, ...] = (), progress: Progress | None = None,
                 quiet: bool = True, source: str = "points", probe_positions: Any = None,
-                frame_index: Any = None, checkpoint: Checkpoint | None = None,
+                frame_index: Any = None, checkpoint: Checkpoint | None = None, warn: bool = True,
                 **overrides: Any) -> Reconstruction:
     """Reconstruct a bone surface mesh from a point cloud in millimetres.
 
@@ -176,39 +223,44 @@ def reconstruct(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torc
     points_mm : (N, 3) array-like, millimetres in the input's frame.
     preset : ``robust`` (the default: ultrasound-like points), ``fast`` (clean, dense clouds),
         ``official`` (the reference code) or ``paper`` (the paper's text); see
-        :data:`~ultraboneudf.config.PRESET_HELP`.
+        :data:`~ultraboneudf.config.PRESET_HELP`. With ``config``, only the name the result
+        records (``custom`` when not given).
     device : ``auto``, ``cpu``, ``cuda`` or a torch device.
     seed : seeds every random draw; same input, config, seed and device give the same mesh.
     method : a name from :data:`ultraboneudf.methods.METHODS`; its ``configure`` sets the method's
         own defaults (network, loss, schedule, extractor) on the preset before the overrides.
-    config : a full :class:`Config` to use instead of the preset (taken as is: no method defaults).
+    config : a complete :class:`Config` to use instead of the preset, taken as it is (no method
+        defaults applied): :func:`configure` gives one, ``rec.config`` is one.
     assignments, overrides : ``"section.key=value"`` strings and keyword overrides of the preset
         (``iters=1000``, ``extract__max_depth=8``).
     progress / quiet : a :class:`Progress` to report to, or ``quiet=False`` for a default one.
     source : the name used in error messages (a file name).
     probe_positions : optional (N, 3) array-like, mm in the same frame as ``points_mm``: row ``i`` is
-        the position of the probe that imaged point ``i`` (``CompoundedPoints.probe_position`` from
-        :func:`ultraboneudf.sweep.sweep_to_points`). Voxel-averaged with the points and normalised
+        the position of the probe that imaged point ``i`` (``SweepPoints.probe_position`` from
+        :func:`ultraboneudf.sweep_points`). Voxel-averaged with the points and normalised
         with the same map. Used by methods that can (Poisson orients its normals toward the probe,
         ``poisson.orientation``); ignored by the others.
     frame_index : optional (N,) integers, with ``probe_positions``: the frame (image) that imaged
-        each point (``CompoundedPoints.frame_index``). The surface through the data then bridges the
+        each point (``SweepPoints.frame_index``). The surface through the data then bridges the
         gaps between consecutive frames further than those inside one, and does not reach past the
         sweep's first and last image planes (``data.frame_bridge``).
     checkpoint : save the training's state every ``checkpoint.every`` steps to ``checkpoint.path``
         and, with ``checkpoint.resume``, continue a killed run from it (same result as an
         uninterrupted run); for the methods that train with the shared loop (not FUNSR or Poisson).
+    warn : issue each of the result's :meth:`~Reconstruction.fit_issues` as a
+        :class:`~ultraboneudf.errors.FitWarning` (a front end that phrases them itself says no).
     """
     progress = progress or Progress(quiet=quiet)
     surface = fit(points_mm, preset, device, seed, method, config=config, assignments=assignments,
                   progress=progress, source=source, probe_positions=probe_positions, frame_index=frame_index,
                   checkpoint=checkpoint, **overrides)
     rec = _finish(surface, progress)
-    _warn_fit(rec, source)
+    if warn:
+        _warn_fit(rec, source)
     return rec
 
 
-def fit(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torch.device = "auto",
+def fit(points_mm: Any, preset: str | None = None, device: str | torch.device = "auto",
         seed: int = 42, method: str = "ultraboneudf", *, config: Config | None = None,
         assignments: list[str] | tuple[str, ...] = (), progress: Progress | None = None,
         quiet: bool = True, source: str = "points", probe_positions: Any = None,
@@ -218,26 +270,22 @@ def fit(points_mm: Any, preset: str = DEFAULT_PRESET, device: str | torch.device
     as often as wanted and with any extraction settings."""
     started = time.perf_counter()
     progress = progress or Progress(quiet=quiet)
-    cfg, entry = configure(preset, method, config, overrides, assignments)
-    if checkpoint is not None and not entry.takes_checkpoint:
-        raise InputError(f"method {method} cannot checkpoint its training (no --checkpoint-every/--resume)")
+    cfg = configure(preset or DEFAULT_PRESET, method, overrides, assignments, config=config,
+                    checkpoint=checkpoint is not None)
+    entry = get_method(method)
     dev = resolve_device(device)
-    points = validate_points(points_mm, source=source)
-    check_units(points, source)
-    probe = _validate_probe(probe_positions, len(points), source)
-    frames = _validate_frames(frame_index, probe, source)
     seed_everything(seed)
-    unit = _to_unit(points, probe, cfg, seed, source, frames)
+    points, unit = prepare(points_mm, cfg, seed, source, probe_positions, frame_index)
     extra = {"probe": unit.probe} if entry.takes_probe else {}
     if entry.takes_planes:
         extra["planes"] = unit.planes
     if checkpoint is not None:
         extra["checkpoint"] = checkpoint
     fitted = entry.fit(unit.points, cfg, dev, seed, progress, **extra)
-    return FittedSurface(method=method, preset=preset if config is None else "custom", config=cfg, device=dev,
+    name = (preset or "custom") if config is not None else (preset or DEFAULT_PRESET)
+    return FittedSurface(method=method, preset=name, config=cfg, device=dev,
                          seed=seed, fitted=fitted, unit=unit,
-                         support=_support(unit.points, unit.planes, cfg.data),
-                         input=input_record(points, source), started=started)
+                         support=unit.support(cfg.data), input=input_record(points, source), started=started)
 
 
 def input_record(points: np.ndarray, source: str) -> dict[str, Any]:
@@ -270,18 +318,17 @@ def reconstruct_many(clouds_mm: Sequence[Any], preset: str = DEFAULT_PRESET, dev
     names = list(sources) if sources is not None else [f"scan {k}" for k in range(len(clouds))]
     if not clouds or len(names) != len(clouds):
         raise InputError("reconstruct_many needs at least one cloud and one source name per cloud")
-    cfg, _ = configure(preset, "ultraboneudf", None, overrides, assignments)
+    cfg = configure(preset, "ultraboneudf", overrides, assignments)
     dev = resolve_device(device)
     units, records = [], []
     for cloud, name in zip(clouds, names):
         seed_everything(seed)
-        cloud = validate_points(cloud, source=name)
-        check_units(cloud, name)
-        units.append(_to_unit(cloud, None, cfg, seed, name))
+        cloud, unit = prepare(cloud, cfg, seed, name)
+        units.append(unit)
         records.append(input_record(cloud, name))
     fitted = ubu.fit_many([u.points for u in units], cfg, dev, seed, progress, [u.planes for u in units])
     out = [_finish(FittedSurface(method="ultraboneudf", preset=preset, config=cfg, device=dev, seed=seed, fitted=f,
-                                 unit=unit, support=_support(unit.points, unit.planes, cfg.data),
+                                 unit=unit, support=unit.support(cfg.data),
                                  input=record, started=t_start), progress)
            for f, unit, record in zip(fitted, units, records)]
     for rec, name in zip(out, names):
@@ -290,124 +337,26 @@ def reconstruct_many(clouds_mm: Sequence[Any], preset: str = DEFAULT_PRESET, dev
     return out
 
 
-@dataclass
-class _UnitCloud:
-    """A cloud after voxelisation (and the local-plane stage), in unit space, with its map back to mm."""
-
-    points: np.ndarray          # (M, 3) unit space
-    probe: np.ndarray | None    # (M, 3) unit space probe positions, if any
-    planes: LocalPlanes | None  # the local planes of the points, lengths in unit space, if fitted
-    normalizer: Normalizer
-    input_points: int
-    outliers: int               # points the local-plane stage dropped
-    frames: int                 # distinct sweep frames given with the points (0: none given)
-    voxel_mm: float             # the voxel edge used (data.voxel_size_mm, or coarser: data.max_voxels)
-    voxel_s: float
-    surface_fit_s: float
-
-
-def configure(preset: str, method: str, config: Config | None = None, overrides: dict[str, Any] | None = None,
-              assignments: list[str] | tuple[str, ...] = ()) -> tuple[Config, Any]:
-    """The run's configuration: ``config`` as given, else the preset with the method's defaults,
-    then the overrides; and the method's registry entry."""
+def configure(preset: str = DEFAULT_PRESET, method: str = "ultraboneudf",
+              overrides: Mapping[str, Any] | None = None, assignments: list[str] | tuple[str, ...] = (), *,
+              config: Config | None = None, checkpoint: bool = False) -> Config:
+    """The complete configuration of a run of ``method``, which :func:`reconstruct` (``config=``)
+    takes as it is: ``preset`` with the method's own defaults (network, loss, schedule, extractor),
+    then the keyword ``overrides`` (``{"train.iters": 1000}``) and the ``"section.key=value"``
+    ``assignments``, validated. With ``config`` (a complete configuration, e.g. an earlier result of
+    this function) a copy of it takes the overrides instead: no method defaults are applied again.
+    ``checkpoint``: the run will save its training's state; :class:`InputError` for a method whose
+    training cannot (the one check of it)."""
     entry = get_method(method)
-    cfg = config if config is not None else make_preset(preset)
-    if config is None:
+    if checkpoint and not entry.takes_checkpoint:
+        raise InputError(f"method {method} cannot checkpoint its training (it does not train in the shared loop)")
+    if config is not None:
+        cfg = copy.deepcopy(config)
+    else:
+        cfg = make_preset(preset)
         entry.configure(cfg)  # the method's own defaults, before the user's overrides
     apply_overrides(cfg, overrides, assignments)
-    return validate(cfg, trains=entry.trains), entry
-
-
-def _to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int,
-             source: str = "points", frames: np.ndarray | None = None) -> _UnitCloud:
-    """Optional test noise, voxel mean (probe positions and, with ``frames``, the image planes'
-    normals follow their points), the local-plane stage in mm (outliers dropped, points moved onto
-    their planes, normals kept), and the one normalisation into unit space."""
-    t0 = time.perf_counter()
-    d = cfg.data
-    n_input = len(points)
-    if d.noise_sigma_mm > 0:
-        points = points + np.random.default_rng(seed + 1).normal(0.0, d.noise_sigma_mm, points.shape)
-    # the probe position, the image plane's normal and the frame's place in the sweep ride along
-    # with each point as attributes
-    attrs = probe
-    with_frames = probe is not None and frames is not None and d.frame_bridge > 0
-    if with_frames:
-        order = np.unique(frames, return_inverse=True)[1].reshape(-1, 1)
-        axes = frame_axes(points, probe, frames)
-        attrs = np.concatenate([probe, axes, order, sweep_ends(points, frames, axes)], axis=1)
-    voxel = d.voxel_size_mm
-    voxelised, voxel_attrs = _voxel_mean(points, attrs, voxel)
-    while d.max_voxels and len(voxelised) > d.max_voxels and voxel > 0:
-        # a surface's voxel count falls with the square of the edge; 1.2× at least, so it converges
-        voxel *= max(1.2, float(np.sqrt(len(voxelised) / d.max_voxels)))
-        voxelised, voxel_attrs = _voxel_mean(points, attrs, voxel)
-    t1 = time.perf_counter()
-    planes, outliers = None, 0
-    if d.surface_fit_mm > 0:
-        voxelised, voxel_attrs, planes, outliers = _local_plane_stage(voxelised, voxel_attrs, d, source)
-        if with_frames:
-            # averaged unit vectors, made unit again (zero stays zero); a voxel shared by two frames
-            # (rare at 0.1 mm) takes one of them, and is an end frame's only if mostly of its points
-            axis, end = voxel_attrs[:, 3:6], voxel_attrs[:, 7:10]
-            axis = axis / np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
-            length = np.linalg.norm(end, axis=1, keepdims=True)
-            end = np.where(length > 0.5, end / np.maximum(length, 1e-12), 0.0)
-            planes = dataclasses.replace(planes, frame_axis=axis, frame_order=np.rint(voxel_attrs[:, 6]),
-                                         frame_end=end)
-    elif d.denoise or d.outlier_sigmas > 0 or d.shadow_mm > 0 or d.front_echo_mm > 0 or d.min_component > 0:
-        raise InputError("data.denoise, data.outlier_sigmas, data.shadow_mm, data.front_echo_mm and "
-                         "data.min_component need the local planes: set data.surface_fit_mm > 0")
-    normalizer = Normalizer.fit(voxelised)
-    voxel_probe = None if voxel_attrs is None else voxel_attrs[:, :3]
-    return _UnitCloud(points=normalizer.forward(voxelised),
-                      probe=None if voxel_probe is None else normalizer.forward(voxel_probe),
-                      planes=None if planes is None else planes.scaled(1.0 / normalizer.scale),
-                      normalizer=normalizer, input_points=n_input, outliers=outliers,
-                      frames=0 if frames is None else len(np.unique(frames)), voxel_mm=voxel,
-                      voxel_s=t1 - t0, surface_fit_s=time.perf_counter() - t1)
-
-
-def _voxel_mean(points: np.ndarray, attrs: np.ndarray | None, voxel: float
-                ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Voxel mean of the points (mm); each voxel's attributes (probe position, ...) are the mean
-    of its points'."""
-    if attrs is None:
-        return voxel_downsample(points, voxel), None
-    return voxel_downsample_with(points, attrs, voxel)
-
-
-def _local_plane_stage(points: np.ndarray, attrs: np.ndarray | None, d: DataConfig, source: str
-                       ) -> tuple[np.ndarray, np.ndarray | None, LocalPlanes, int]:
-    """Robust local planes of the voxelised ``points`` (N, 3) mm, ``data.denoise`` times (at least
-    once): drop the outliers (``outlier_sigmas``), move the points onto their planes (``denoise``),
-    drop the echoes in the shadow of others along their beam (``shadow_mm``; needs the probe
-    positions, ``attrs[:, :3]``). Returns the points, their attributes, their last planes and the
-    number dropped."""
-    planes, dropped = None, 0
-    for _ in range(max(1, d.denoise)):
-        view = None
-        if attrs is not None:  # sweep points: the planes must face the probe
-            view = points - attrs[:, :3]
-            view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
-        planes = fit_local_planes(points, d.surface_fit_mm, view=view, steep_deg=d.steep_planes_deg)
-        keep = ~false_echoes(points, planes, view, depth=d.front_echo_mm, ratio=d.front_echo_ratio,
-                             fraction=d.min_component)
-        if d.outlier_sigmas > 0:
-            spare = None if view is None else steep_echoes(points, view, planes, _STEEP_ECHO_SHADOW_MM)
-            keep &= ~planes.outliers(d.outlier_sigmas, 0.1 * d.surface_fit_mm, spare)
-        if not keep.any():
-            raise InputError(f"{source}: no point has enough neighbours within data.surface_fit_mm = "
-                             f"{d.surface_fit_mm:g} mm to form a surface (is the cloud in mm?)")
-        if d.denoise:
-            points = planes.projected(points)
-        if view is not None and d.shadow_mm > 0:  # among the points kept so far
-            rows = np.flatnonzero(keep)
-            keep[rows[shadowed(points[rows], view[rows], d.shadow_mm)]] = False
-        dropped += int((~keep).sum())
-        points, planes = points[keep], planes.subset(keep)
-        attrs = None if attrs is None else attrs[keep]
-    return points, attrs, planes, dropped
+    return validate(cfg, trains=entry.trains)
 
 
 @dataclass
@@ -423,7 +372,7 @@ class FittedSurface:
     device: torch.device
     seed: int
     fitted: Fitted
-    unit: "_UnitCloud" = dataclasses.field(repr=False)
+    unit: UnitCloud = dataclasses.field(repr=False)
     support: np.ndarray | DataSurface = dataclasses.field(repr=False)
     input: dict[str, Any] = dataclasses.field(default_factory=dict)
     """The sidecar's ``input`` (:func:`input_record`)."""
@@ -525,16 +474,6 @@ def resolve_leaf_size(cfg: ExtractConfig, normalizer: Normalizer) -> ExtractConf
     return dataclasses.replace(cfg, max_depth=depth)
 
 
-def _support(points: np.ndarray, planes: LocalPlanes | None, d: DataConfig) -> np.ndarray | DataSurface:
-    """The support trim's reference: the unit-space points, or with local planes the surface
-    through them, bridged across their gaps with ``data.bridge`` > 0 and across a sweep's frames with
-    ``data.frame_bridge`` (its distance is the distance to the nearest point without; its normals
-    serve ``extract.trim_normal_mm``)."""
-    if planes is None:
-        return points
-    return DataSurface.from_planes(points, planes, d.bridge, frame_bridge=d.frame_bridge)
-
-
 def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, normalizer: Normalizer,
                   trim_mm: float, trim_normal_mm: float = 0.0) -> tuple[trimesh.Trimesh | None, int]:
     """The support trim (``extract.trim_mm`` and ``extract.trim_normal_mm``, against the unit-space
@@ -546,35 +485,3 @@ def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray | DataS
                               trim_normal_mm / normalizer.scale)
     removed = len(unit_mesh.faces) - (0 if trimmed is None else len(trimmed.faces))
     return (None if trimmed is None else normalizer.inverse_mesh(trimmed)), removed
-
-
-def _validate_frames(frame_index: Any, probe: np.ndarray | None, source: str) -> np.ndarray | None:
-    """``frame_index`` as an (N,) int64 array matching the N probe positions, or ``None``."""
-    if frame_index is None:
-        return None
-    if probe is None:
-        raise InputError(f"{source}: frame indices need the probe positions of the points too")
-    try:
-        frames = np.asarray(frame_index)
-    except (TypeError, ValueError):
-        frames = np.asarray([])
-    if frames.shape != (len(probe),) or not np.issubdtype(frames.dtype, np.integer):
-        raise InputError(f"{source}: frame indices must be N integers, one per point (N = {len(probe)}), "
-                         f"got shape {frames.shape} of {frames.dtype}")
-    return frames.astype(np.int64)
-
-
-def _validate_probe(probe_positions: Any, n_points: int, source: str) -> np.ndarray | None:
-    """``probe_positions`` as an (N, 3) float64 array matching the N points, or ``None``."""
-    if probe_positions is None:
-        return None
-    try:
-        probe = np.asarray(probe_positions, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"{source}: probe positions cannot be read as an array of numbers") from None
-    if probe.shape != (n_points, 3):
-        raise InputError(f"{source}: probe positions must be an N×3 array with one row per point "
-                         f"(N = {n_points}), got shape {probe.shape}")
-    if not np.isfinite(probe).all():
-        raise InputError(f"{source}: probe positions contain NaN or Inf")
-    return probe

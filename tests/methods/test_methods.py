@@ -173,7 +173,7 @@ def test_pca_normals_of_a_plane():
 def test_the_budget_field_not_the_preset_name_sets_the_baselines_schedule():
     from ultraboneudf.pipeline import configure
 
-    cpu, _ = configure("robust", "capudf")
+    cpu = configure("robust", "capudf")
     assert cpu.train.budget == "auto" and cpu.train.iters == preset("robust").train.iters
     assert cpu.capudf.expand_at == 2 * cpu.train.iters // 3 and cpu.grid.resolution == 128
     # the same preset asked for the published schedule (the method reads the field it is given)
@@ -181,5 +181,5 @@ def test_the_budget_field_not_the_preset_name_sets_the_baselines_schedule():
     cfg.train.budget = "reference"
     get_method("capudf").configure(cfg)
     assert (cfg.train.iters, cfg.capudf.expand_at, cfg.grid.resolution) == (60_000, 40_000, 256)
-    funsr, _ = configure("official", "funsr")
+    funsr = configure("official", "funsr")
     assert funsr.train.budget == "reference" and funsr.train.iters == 15_000 and funsr.grid.resolution == 256

@@ -71,13 +71,12 @@ def make_dataset(kind: str, source: str | os.PathLike, out: str | os.PathLike, *
                     truth = mesh
                     points = trimesh.sample.sample_surface(truth, samples, seed=seed)[0]
                 else:
-                    from ..sweep import align_frames, sweep_to_points
+                    from ..sweep.front_end import SweepOptions, sweep_points
                     from ..synth.simulator import config_with_noise, simulate_sweep
 
                     sim = simulate_sweep(mesh, config_with_noise(level, seed=seed))
-                    cp, _ = align_frames(sweep_to_points(sim.sweep, segment="masks"))
-                    points, probe, truth = cp.points, cp.probe_position, sim.visible_mesh
-                    frames = cp.frame_index
+                    sp = sweep_points(sim.sweep, SweepOptions(segment="masks"))
+                    points, probe, frames, truth = sp.points, sp.probe_position, sp.frame_index, sim.visible_mesh
                 _save_points(out / f"{name}.npz", points, probe, frames)
                 save_mesh(truth, out / f"{name}_gt.ply")
                 units.append(Unit(name, mesh_path.stem, out / f"{name}.npz", out / f"{name}_gt.ply"))

@@ -16,7 +16,6 @@ import hashlib
 import itertools
 import json
 import sqlite3
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -107,8 +106,9 @@ def run_cells(cells: list[Cell], out: Path, *, device: str = "auto", samples: in
 
     if engine not in ENGINES:
         raise InputError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
+    configs = {}  # each cell's configuration, resolved once, before the first cell runs
     for cell in cells:
-        configure(cell.preset, cell.method, None, None, list(cell.overrides))
+        configs[cell.id] = configure(cell.preset, cell.method, assignments=list(cell.overrides))
         if not (out / "cells" / cell.id).resolve().is_relative_to((out / "cells").resolve()):
             raise InputError(f"cell {cell.id!r}: its folder would lie outside {out / 'cells'}")
     out.mkdir(parents=True, exist_ok=True)
@@ -130,10 +130,10 @@ def run_cells(cells: list[Cell], out: Path, *, device: str = "auto", samples: in
             advance()
 
         if engine == "ray":
-            _run_on_ray(todo, out, device, samples, address, finished)
+            _run_on_ray(todo, configs, out, device, samples, address, finished)
         elif workers <= 1:
             for cell in todo:
-                finished(_run_cell(cell, out / "cells" / cell.id, device, samples))
+                finished(_run_cell(cell, configs[cell.id], out / "cells" / cell.id, device, samples))
         else:
             import multiprocessing
             import os
@@ -142,7 +142,8 @@ def run_cells(cells: list[Cell], out: Path, *, device: str = "auto", samples: in
             threads = max(1, (os.cpu_count() or 1) // workers)
             with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                      initializer=_worker_init, initargs=(threads,)) as pool:
-                futures = [pool.submit(_run_cell, c, out / "cells" / c.id, device, samples) for c in todo]
+                futures = [pool.submit(_run_cell, c, configs[c.id], out / "cells" / c.id, device, samples)
+                           for c in todo]
                 for future in as_completed(futures):
                     finished(future.result())
     write_tables(out)
@@ -153,8 +154,8 @@ RAY_RETRIES = 3
 """Times a cell is started again when its Ray worker dies (killed, out of memory, a lost node)."""
 
 
-def _run_on_ray(cells: list[Cell], out: Path, device: str, samples: int, address: str | None,
-                finished: Any) -> None:
+def _run_on_ray(cells: list[Cell], configs: dict[str, Any], out: Path, device: str, samples: int,
+                address: str | None, finished: Any) -> None:
     """The cells as Ray tasks; ``finished(row)`` as each returns, in the order they finish."""
     try:
         import ray
@@ -170,7 +171,7 @@ def _run_on_ray(cells: list[Cell], out: Path, device: str, samples: int, address
     try:
         gpu = str(device).startswith("cuda")
         task = ray.remote(num_cpus=1, num_gpus=1 if gpu else 0, max_retries=RAY_RETRIES)(_run_cell)
-        pending = [task.remote(c, out / "cells" / c.id, device, samples) for c in cells]
+        pending = [task.remote(c, configs[c.id], out / "cells" / c.id, device, samples) for c in cells]
         while pending:
             ready, pending = ray.wait(pending, num_returns=1)
             finished(ray.get(ready[0]))
@@ -185,15 +186,16 @@ def _worker_init(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
-def _run_cell(cell: Cell, target: Path, device: str, samples: int) -> dict[str, Any]:
-    """Run one cell into a staged folder and put it in place of ``target`` whole."""
+def _run_cell(cell: Cell, config: Any, target: Path, device: str, samples: int) -> dict[str, Any]:
+    """Run one cell with its resolved ``config`` into a staged folder and put it in place of
+    ``target`` whole."""
     with Commit() as commit:
-        row = _fill_cell(cell, commit.folder(target), device, samples)
+        row = _fill_cell(cell, config, commit.folder(target), device, samples)
         commit.commit()
     return row
 
 
-def _fill_cell(cell: Cell, folder: Path, device: str, samples: int) -> dict[str, Any]:
+def _fill_cell(cell: Cell, config: Any, folder: Path, device: str, samples: int) -> dict[str, Any]:
     import ultraboneudf
     from ..evaluation import evaluate
 
@@ -203,12 +205,10 @@ def _fill_cell(cell: Cell, folder: Path, device: str, samples: int) -> dict[str,
                            "gt": str(cell.unit.gt)}
     try:
         points, probe, frames = _read_input(cell.unit.input)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the data-fit figures are in the row
-            rec = ultraboneudf.reconstruct(points, preset=cell.preset, device=device, seed=cell.seed,
-                                           method=cell.method, assignments=list(cell.overrides),
-                                           source=str(cell.unit.input), probe_positions=probe,
-                                           frame_index=frames)
+        rec = ultraboneudf.reconstruct(points, preset=cell.preset, device=device, seed=cell.seed,
+                                       method=cell.method, config=config, source=str(cell.unit.input),
+                                       probe_positions=probe, frame_index=frames,
+                                       warn=False)  # the data-fit figures are in the row
         resolved = json.dumps(rec.config.to_dict(), sort_keys=True).encode()
         row["config_hash"] = hashlib.sha256(resolved).hexdigest()[:16]
         row.update({k: rec.timings.get(k) for k in ("preprocess_s", "train_s", "extract_s", "total_s")})
@@ -245,10 +245,10 @@ def _read_input(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray |
                 frames = np.asarray(data["frame"]) if "frame" in data.files else None
                 return load_points(path), np.asarray(data["probe"], dtype=np.float64), frames
     if path.is_dir() or path.suffix.lower() in (".mha", ".mhd", ".nrrd"):
-        from ..sweep import align_frames, sweep_to_points
+        from ..sweep.front_end import sweep_points
 
-        cp, _ = align_frames(sweep_to_points(path))
-        return cp.points, cp.probe_position, cp.frame_index
+        sp = sweep_points(path)
+        return sp.points, sp.probe_position, sp.frame_index
     points = load_points(path)
     return (points, *load_sweep_columns(path, len(points)))
 

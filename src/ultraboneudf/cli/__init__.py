@@ -27,7 +27,7 @@ import traceback
 import warnings
 
 from .._version import __version__
-from ..errors import FitWarning, InputError, SweepWarning
+from ..errors import InputError, SweepWarning
 
 COMMANDS = ["reconstruct", "demo", "evaluate", "render", "register", "stats", "sweep2points", "simulate", "bench",
             "config", "info"]
@@ -105,8 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
 class _InputWarnings:
     """Collects tolerated input defects (:class:`~ultraboneudf.errors.SweepWarning`) during a
     command and prints them, one line each, when it succeeds; a failed command prints only its
-    one error line. :class:`~ultraboneudf.errors.FitWarning` is dropped: the commands print the same
-    sentences with command-line advice."""
+    one error line."""
 
     def __init__(self, command: str) -> None:
         self.command, self.category, self.lines = command, SweepWarning, []
@@ -115,7 +114,7 @@ class _InputWarnings:
     def show(self, message, category, filename, lineno, file=None, line=None) -> None:
         if issubclass(category, self.category):
             self.lines.append(f"ultraboneudf {self.command}: warning: {message}")
-        elif not issubclass(category, FitWarning):
+        else:
             self.default(message, category, filename, lineno, file, line)
 
     def flush(self) -> None:
@@ -136,7 +135,6 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with warnings.catch_warnings(), _signals_raise():
             warnings.simplefilter("always", collected.category)
-            warnings.simplefilter("always", FitWarning)
             warnings.showwarning = collected.show
             code = int(args.func(args) or 0)
         collected.flush()

@@ -93,12 +93,12 @@ def table(spec: str) -> str:
     args = dict(item.split("=", 1) for item in spec.split())
     docs = _docs()
     base_name = args.get("base", "official")
-    base = _flat(configure(base_name, "ultraboneudf")[0])
+    base = _flat(configure(base_name, "ultraboneudf"))
     if "method" in args:
-        target = _flat(configure("official", args["method"])[0])
+        target = _flat(configure("official", args["method"]))
         head = f"`official` → `{args['method']}`"
     elif "preset" in args:
-        target = _flat(configure(args["preset"], "ultraboneudf")[0])
+        target = _flat(configure(args["preset"], "ultraboneudf"))
         head = f"`{base_name}` → `{args['preset']}`"
     else:
         target, head = base, "default"
@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     from ..pipeline import configure
 
-    cfg, _ = configure(args.preset, args.method, None, None, args.assignments)
+    cfg = configure(args.preset, args.method, assignments=args.assignments)
     if args.json:
         print(json.dumps(cfg.to_dict(), indent=2))
         return 0

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from ..config import DEFAULT_PRESET
 from ..errors import InputError
 from . import add_overwrite
 from .cmd_reconstruct import add_run_options, check_config
+from .fit_hints import print_fit_issues
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -53,7 +55,8 @@ def _run(args: argparse.Namespace, overrides: dict) -> int:
     progress.log(f"demo: synthetic sweep of {len(phantom.points)} points over a 120 mm bone-like surface "
                  f"(slices, two frame gaps, segmentation gaps, 0.15 mm noise, 0.2 mm tracking jitter)")
     rec = reconstruct(phantom.points, preset=args.preset, device=args.device, seed=args.seed,
-                      assignments=args.assignments, progress=progress, source="demo phantom", **overrides)
+                      assignments=args.assignments, progress=progress, source="demo phantom", warn=False,
+                      **overrides)
     if rec.mesh is None:
         progress.log("demo: the reconstruction found no surface; nothing written")
         return 1
@@ -78,8 +81,7 @@ def _run(args: argparse.Namespace, overrides: dict) -> int:
     print(f"demo: Chamfer distance to the known truth {result.cd_mm:.3f} mm, HD95 {result.hd95_mm:.3f} mm "
           f"({rec.counts['faces']} faces, {t['total_s']:.1f} s on {rec.device}: preprocess "
           f"{t['preprocess_s']:.1f} s, train {t['train_s']:.1f} s, extract {t['extract_s']:.1f} s)")
-    for warning in rec.fit_warnings(cli=True):
-        print(f"demo: warning: {warning}")
+    print_fit_issues(rec, "demo", sys.stdout)
     print(f"demo: wrote {out}/demo_mesh.ply, demo_mesh.ply.json, demo_eval.json, demo_mesh.png")
     return 0
 

@@ -11,8 +11,9 @@ from ..config import DEFAULT_PRESET, PRESET_HELP, PRESETS, UNITS_MM
 from ..errors import InputError
 from ..methods import NAMES
 from . import add_overwrite
-from .sweep_input import (add_sweep_options, check_sweep_options, read_options, sweep_inputs, sweep_options_given,
-                          sweep_points)
+from .fit_hints import print_fit_issues
+from .sweep_input import (add_sweep_options, check_sweep_options, read_options, sweep_inputs, sweep_options,
+                          sweep_options_given)
 
 if TYPE_CHECKING:
     import numpy as np
@@ -153,22 +154,21 @@ def _run(args: argparse.Namespace, output: Path, overrides: dict, cloud, checkpo
     from ..pipeline import configure, reconstruct
     from ..progress import Progress
 
-    _, entry = configure(args.preset, args.method, None, overrides, args.assignments)
-    if checkpoint is not None and not entry.takes_checkpoint:
-        raise InputError(f"--method {args.method} cannot checkpoint its training; drop "
-                         f"--checkpoint-every/--resume")
+    # the run's configuration, resolved once (the method's defaults, then --iters and --set)
+    config = configure(args.preset, args.method, overrides, args.assignments, checkpoint=checkpoint is not None)
     progress = Progress(quiet=args.quiet)
     if checkpoint is not None and args.resume and not checkpoint.path.exists():
         progress.log(f"no checkpoint {checkpoint.path} yet: training starts at step 0")
     if cloud is None:
-        res = sweep_points(args.input, args, progress)
-        points, probe, frames, sweep_info = (res.points.points, res.points.probe_position,
-                                             res.points.frame_index, res.info)
+        from ..sweep.front_end import sweep_points
+
+        res = sweep_points(args.input, sweep_options(args), progress)
+        points, probe, frames, sweep_info = res.points, res.probe_position, res.frame_index, res.info
     else:
         (points, probe, frames), sweep_info = cloud, None
     rec = reconstruct(points, preset=args.preset, device=args.device, seed=args.seed, method=args.method,
-                      assignments=args.assignments, progress=progress, source=str(args.input),
-                      probe_positions=probe, frame_index=frames, checkpoint=checkpoint, **overrides)
+                      config=config, progress=progress, source=str(args.input), probe_positions=probe,
+                      frame_index=frames, checkpoint=checkpoint, warn=False)
     if rec.mesh is None:
         print(f"ultraboneudf reconstruct: no surface was found in {args.input}; nothing written "
               "(see the loss history with --set train.iters=… or try another preset)", file=sys.stderr)
@@ -185,8 +185,7 @@ def _run(args: argparse.Namespace, output: Path, overrides: dict, cloud, checkpo
     progress.log(f"wrote {output} ({rec.counts['vertices']} vertices, {rec.counts['faces']} faces) and "
                  f"{sidecar}; {t['total_s']:.1f} s (preprocess {t['preprocess_s']:.1f}, "
                  f"train {t['train_s']:.1f}, extract {t['extract_s']:.1f}) on {rec.device}")
-    for warning in rec.fit_warnings(cli=True):  # shown even with --quiet: they concern the result
-        print(f"ultraboneudf reconstruct: warning: {warning}", file=sys.stderr)
+    print_fit_issues(rec, "ultraboneudf reconstruct")
     return 0
 
 

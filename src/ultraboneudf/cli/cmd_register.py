@@ -89,8 +89,9 @@ def _read_target(args: argparse.Namespace, progress) -> tuple[Any, dict[str, Any
     from ..io import sha256_file
     from ..registration.solve import mesh_file
     from ..sweep import is_sweep_path
+    from ..sweep.front_end import sweep_points
     from .cmd_reconstruct import read_points
-    from .sweep_input import sweep_points
+    from .sweep_input import sweep_options
 
     path: Path = args.target
     record: dict[str, Any] = {"path": str(path.resolve()) if path.exists() else str(path)}
@@ -113,9 +114,8 @@ def _read_target(args: argparse.Namespace, progress) -> tuple[Any, dict[str, Any
         if args.units != "mm":
             raise InputError(f"{path}: --units applies to point cloud files; a sweep's geometry comes "
                              f"from its calibration (mm)")
-        res = sweep_points(path, args, progress)
-        points, probe, frames, sweep_info = (res.points.points, res.points.probe_position,
-                                             res.points.frame_index, res.info)
+        res = sweep_points(path, sweep_options(args), progress)
+        points, probe, frames, sweep_info = res.points, res.probe_position, res.frame_index, res.info
     else:
         (points, probe, frames), sweep_info = read_points(path, args), None
     record.update(sha256=sha256_file(path), units=args.units)
@@ -130,7 +130,7 @@ def _read_target(args: argparse.Namespace, progress) -> tuple[Any, dict[str, Any
 
     overrides = {} if args.iters is None else {"train.iters": args.iters}
     rec = reconstruct(points, preset=args.preset, device=args.device, seed=args.seed, progress=progress,
-                      source=str(path), probe_positions=probe, frame_index=frames, **overrides)
+                      source=str(path), probe_positions=probe, frame_index=frames, warn=False, **overrides)
     if rec.mesh is None:
         raise InputError(f"{path}: the reconstruction found no surface; register to its points with "
                          f"--no-reconstruct, or reconstruct it yourself and pass the mesh")

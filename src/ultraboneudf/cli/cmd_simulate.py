@@ -43,23 +43,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def parse_assignments(items: list[str]) -> dict:
     """``KEY=VALUE`` strings → simulator options of the fields' own types (the configuration's
-    coercion: numbers, ``a,b,c`` tuples, ``none``); :class:`InputError` for a bad item, key or value."""
+    parser: numbers, ``a,b,c`` tuples, ``none``); :class:`InputError` for a bad item, key or value."""
     import typing
 
-    from ..config import coerce
+    from ..config import parse_key_values
     from ..synth.simulation_config import SimulationConfig
 
-    hints = typing.get_type_hints(SimulationConfig)
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        key = key.strip()
-        if not sep:
-            raise InputError(f"--set {item!r}: expected KEY=VALUE")
-        if key not in hints:
-            raise InputError(f"--set {item!r}: unknown simulator option {key!r}; options: {', '.join(hints)}")
-        out[key] = coerce(hints[key], value.strip(), key)
-    return out
+    return parse_key_values(items, "--set", typing.get_type_hints(SimulationConfig), what="simulator option")
 
 
 MAX_FRAME_BYTES = 8 << 30

@@ -8,10 +8,12 @@ from typing import TYPE_CHECKING
 
 from ..errors import InputError
 from . import add_overwrite
-from .sweep_input import add_sweep_options, check_sweep_options, read_options, sweep_inputs, sweep_points
+from .sweep_input import add_sweep_options, check_sweep_options, read_options, sweep_inputs, sweep_options
 
 if TYPE_CHECKING:
     import numpy as np
+
+    from ..sweep.front_end import SweepOptions
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -91,18 +93,23 @@ def run(args: argparse.Namespace) -> int:
     return _run(args, out)
 
 
+def front_end_options(args: argparse.Namespace) -> "SweepOptions":
+    """The front end's options: the sweep options, and this command's own."""
+    return sweep_options(args, top_only=not args.all_pixels, remove_outliers=not args.no_outliers,
+                         outlier_rule=args.outlier_rule, outlier_k=args.outlier_k, outlier_std=args.outlier_std,
+                         outlier_factor=args.outlier_factor, frame_step=args.frame_step)
+
+
 def _run(args: argparse.Namespace, out: Path) -> int:
     import numpy as np
 
     from ..io import encode_points, record, sha256_file, write_outputs
     from ..progress import Progress
+    from ..sweep.front_end import sweep_points
 
     progress = Progress(quiet=args.quiet)
-    res = sweep_points(args.sweep, args, progress, top_only=not args.all_pixels,
-                       remove_outliers=not args.no_outliers, outlier_rule=args.outlier_rule,
-                       outlier_k=args.outlier_k, outlier_std=args.outlier_std,
-                       outlier_factor=args.outlier_factor, frame_step=args.frame_step)
-    cp, sweep = res.points, res.sweep
+    res = sweep_points(args.sweep, front_end_options(args), progress)
+    cp, sweep = res.cloud, res.sweep
     meta = record("sweep2points", input={"path": str(args.sweep.resolve()), "sha256": sha256_file(args.sweep)},
                   options={k: str(v) for k, v in sorted(vars(args).items()) if k not in ("func", "output")},
                   sweep=res.info)
@@ -114,7 +121,7 @@ def _run(args: argparse.Namespace, out: Path) -> int:
     frames_with_bone = len(np.unique(cp.frame_index))
     lo, hi = cp.points.min(axis=0), cp.points.max(axis=0)
     print(f"sweep2points: {len(cp)} points from {frames_with_bone}/{sweep.n_frames} frames "
-          f"(segmentation: {res.method}); extent {np.round(hi - lo, 1).tolist()} mm; wrote {out} and "
+          f"(segmentation: {res.segmentation}); extent {np.round(hi - lo, 1).tolist()} mm; wrote {out} and "
           f"its sidecar {out.name}.json")
     if sheets:
         print(f"sweep2points: wrote {-(-sweep.n_frames // 30)} overlay sheet(s) to {args.overlays}")

@@ -1,19 +1,21 @@
-"""The sweep options shared by ``reconstruct`` and ``sweep2points``, and the one flow both use:
-read the sweep through its pose chain, segment the bone, compound the points in mm."""
+"""The sweep options of ``reconstruct``, ``sweep2points`` and ``register``: their flags, the checks
+made before any frame is read, and their translation to
+:class:`~ultraboneudf.sweep.front_end.SweepOptions` for the one front end,
+:func:`~ultraboneudf.sweep.front_end.sweep_points`."""
 
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..errors import InputError
-from ..progress import Progress
 
-CHAIN_OPTIONS = ("calibration", "transform", "reference", "image_frame", "transforms")
+if TYPE_CHECKING:
+    from ..sweep.front_end import SweepOptions
+
 
 
 def add_sweep_options(p: argparse.ArgumentParser) -> None:
@@ -61,17 +63,16 @@ def add_sweep_options(p: argparse.ArgumentParser) -> None:
 
 
 def parse_kv(items: list[str], option: str = "--detector") -> dict[str, float]:
-    """``['high=0.4']`` → ``{'high': 0.4}``; errors name the option."""
-    out = {}
-    for item in items:
-        if "=" not in item:
-            raise InputError(f"{option} {item!r}: expected KEY=VALUE")
-        k, v = item.split("=", 1)
-        try:
-            out[k.strip()] = float(v)
-        except ValueError:
-            raise InputError(f"{option} {item!r}: {v!r} is not a number") from None
-    return out
+    """``['high=0.4']`` → ``{'high': 0.4}``: the classical detector's options, each a number of the
+    :class:`~ultraboneudf.sweep.segment.BoneDetector` field it names; errors name the option, the
+    key and the problem."""
+    import dataclasses
+
+    from ..config import parse_key_values
+    from ..sweep.segment import BoneDetector
+
+    types = {f.name: float for f in dataclasses.fields(BoneDetector)}
+    return parse_key_values(items, option, types, what="detector option")
 
 
 def sweep_inputs(args: argparse.Namespace) -> list[Path]:
@@ -181,6 +182,8 @@ def _mask_array_frames(masks: Path) -> int | None:
 
 def sweep_options_given(args: argparse.Namespace) -> list[str]:
     """The sweep options set on the command line (to reject them for a point cloud input)."""
+    from ..sweep.front_end import CHAIN_OPTIONS
+
     given = [name for name in CHAIN_OPTIONS if getattr(args, name, None)]
     given += [name for name in ("masks", "mask_dir") if getattr(args, name, None) is not None]
     if getattr(args, "segment", "auto") != "auto":
@@ -192,134 +195,28 @@ def sweep_options_given(args: argparse.Namespace) -> list[str]:
     return ["--" + g.replace("_", "-") for g in given]
 
 
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
 def read_options(args: argparse.Namespace, path: Path) -> dict[str, Any]:
-    """Keyword options for :func:`~ultraboneudf.sweep.read_sweep` from the command line."""
-    from ..sweep import detect_layout
-
-    layout = detect_layout(path) if path.exists() else None
-    opts: dict[str, Any] = {}
-    chain = {name: getattr(args, name) for name in CHAIN_OPTIONS if getattr(args, name, None)}
-    if layout == "ultrabones":
-        if chain:
-            raise InputError(f"{path}: {', '.join('--' + k.replace('_', '-') for k in chain)} "
-                             f"{'apply' if len(chain) > 1 else 'applies'} to PLUS/Slicer sequence "
-                             f"files; an UltraBones100k folder carries its calibration in "
-                             f"calibration.json")
-        if args.mask_dir is not None:
-            opts["mask_dir"] = args.mask_dir
-        return opts
-    if args.mask_dir is not None:
-        raise InputError(f"{path}: --mask-dir applies to UltraBones100k folders; give --masks")
-    if "transforms" in chain:
-        if layout != "nrrd":
-            raise InputError(f"{path}: --transforms applies to NRRD image sequences (.seq.nrrd); this "
-                             f"file holds its own transforms")
-        opts["transforms"] = chain.pop("transforms")
-    opts.update(chain)
-    return opts
+    """Keyword options for :func:`~ultraboneudf.sweep.read_sweep` from the command line;
+    :class:`InputError` naming the flags the sweep's layout does not take."""
+    return sweep_options(args).read_kwargs(path, _flag)
 
 
-@dataclass
-class SweepPoints:
-    """What :func:`sweep_points` made: the points and how."""
+def sweep_options(args: argparse.Namespace, **front_end: Any) -> "SweepOptions":
+    """The command line's sweep options as :class:`~ultraboneudf.sweep.front_end.SweepOptions`;
+    ``front_end``: the options a command sets from its own flags (``sweep2points``: outliers,
+    ``top_only``, ``frame_step``)."""
+    from ..sweep.front_end import SweepOptions
 
-    points: Any                    # CompoundedPoints
-    sweep: Any                     # the Sweep as segmented
-    masks: np.ndarray
-    method: str
-    info: dict = field(default_factory=dict)
-
-
-def sweep_points(path: Path, args: argparse.Namespace, progress: Progress, *, top_only: bool = True,
-                 remove_outliers: bool = True, outlier_rule: str = "local", outlier_k: int = 16,
-                 outlier_std: float = 2.0, outlier_factor: float = 1.5, frame_step: int = 1) -> SweepPoints:
-    """Read a sweep with the command line's options, segment its bone and compound the points.
-
-    Raises :class:`InputError` (one line, naming the file) for a sweep without 3-D extent, for no
-    bone found, and for anything its reader rejects.
-    """
-    from ..sweep import align_frames, read_sweep, segment_sweep, sweep_to_points
-    from ..sweep.bone import classical_bone_masks
-    from ..sweep.chain import frames_coplanar
-    from ..sweep.consistency import drop_unconfirmed_fragments
-    from ..sweep.formats.images import load_mask_stack
-    from ..sweep.probability import looks_like_bone_map
-
-    sweep = read_sweep(path, progress=progress, **read_options(args, path))
-    chain = sweep.meta.get("chain")
-    if chain:
-        progress.log(f"{path.name}: pose chain {chain['pixel_frame']}→{chain['reference_frame']} = "
-                     f"{chain['chain']}"
-                     + (f" (calibration {Path(chain['calibration']).name})" if chain.get("calibration") else "")
-                     + f"; {chain['frames_used']}/{chain['frames']} frames valid; points in the "
-                     f"{chain['reference_frame']} frame")
-        for note in sweep.meta.get("chain_notes", []):
-            progress.log(f"{path.name}: {note}")
-    if sweep.n_frames < 2 or frames_coplanar(sweep.pixel_to_world(), sweep.image_size)[0]:
-        how = f" (chain {chain['chain']})" if chain else ""
-        what = "has a single frame" if sweep.n_frames < 2 else "has every frame in one plane"
-        raise InputError(f"{path}: the sweep {what}{how}, so it has no 3-D extent; check the "
-                         f"tracking transforms and --transform/--reference")
-    if args.masks is not None:
-        sweep = sweep.with_masks(load_mask_stack(args.masks, sweep.n_frames, sweep.image_size,
-                                                 [Path(n).stem for n in sweep.frame_names]))
-    if frame_step > 1:
-        sweep = sweep.subset(np.arange(0, sweep.n_frames, frame_step))
-    segment = args.segment
-    if segment == "auto":
-        segment = "masks" if sweep.masks is not None else "classical"
-    info: dict[str, Any] = {"layout": sweep.meta.get("layout"), "frames": sweep.n_frames,
-                            "pixel_spacing_mm": np.round(np.median(sweep.spacing_mm, axis=0), 6).tolist(),
-                            "shear_deg": round(float(np.median(sweep.shear_deg)), 4) + 0.0}
-    if chain:
-        info["pose_chain"] = chain
-        info["image_orientation"] = sweep.meta.get("file_orientation")
-    detector = parse_kv(args.detector)
-    if segment == "classical":
-        masks, report = classical_bone_masks(sweep, detector, consistency=not args.no_consistency,
-                                             progress=progress)
-        method = "classical"
-        info["segmentation"] = {"method": method, **report.as_dict()}
-        progress.log(f"{path.name}: classical segmentation: {report.summary()}")
-    else:
-        if detector:
-            raise InputError(f"--detector applies to the classical detector, not --segment {segment}")
-        masks, method = segment_sweep(sweep, segment, None, {"threshold": args.threshold}, progress)
-        info["segmentation"] = {"method": method}
-    if not masks.any():
-        why = ""
-        if segment == "classical":
-            rep = info["segmentation"]
-            if rep["no_tissue_frames"] == sweep.n_frames:
-                why = "; no frame images soft tissue (water or gel only)"
-                if looks_like_bone_map(sweep.images):
-                    why += ("; if the frames are a bone map (dark but for the bone, e.g. a bone "
-                            "enhancer's output), give --segment probability")
-            elif rep["no_tissue_frames"] or rep["low_confidence_frames"]:
-                why = (f"; {rep['no_tissue_frames']} frame(s) image no soft tissue, "
-                       f"{rep['low_confidence_frames']} have only weak echoes")
-        raise InputError(f"{path}: no bone found in any of the {sweep.n_frames} frames "
-                         f"(segmentation: {method}{why})")
-    cp = sweep_to_points(sweep.with_masks(masks), segment="masks", top_only=top_only,
-                         remove_outliers=remove_outliers, outlier_rule=outlier_rule, outlier_k=outlier_k,
-                         outlier_std=outlier_std, outlier_factor=outlier_factor,
-                         remove_fragments=False, progress=progress)
-    info["fragments"] = None
-    if not args.no_consistency:  # here, not in sweep_to_points, for the sidecar's report
-        cp, fragments = drop_unconfirmed_fragments(cp, progress, path.name)
-        info["fragments"] = fragments.as_dict()
-    if frame_step > 1:
-        cp.frame_index = cp.frame_index * frame_step
-    info["outlier_removal"] = None if not remove_outliers else {
-        "rule": outlier_rule, "k": outlier_k,
-        **({"factor": outlier_factor} if outlier_rule == "local" else {"std_ratio": outlier_std})}
-    if not args.no_align_frames:
-        cp, report = align_frames(cp)
-        info["alignment"] = report.as_dict()
-        progress.log(f"{path.name}: {report.summary()}")
-    d = cp.depth_mm
-    info["points"] = {"count": len(cp), "frames_with_bone": int(len(np.unique(cp.frame_index))),
-                      "depth_mm_median": round(float(np.median(d)), 3),
-                      "depth_mm_p10_p90": [round(float(np.percentile(d, 10)), 3),
-                                           round(float(np.percentile(d, 90)), 3)]}
-    return SweepPoints(cp, sweep, masks, method, info)
+    consistency = not getattr(args, "no_consistency", False)
+    return SweepOptions(
+        calibration=getattr(args, "calibration", None), transform=getattr(args, "transform", None),
+        reference=getattr(args, "reference", None), image_frame=getattr(args, "image_frame", None),
+        transforms=tuple(getattr(args, "transforms", None) or ()), masks=getattr(args, "masks", None),
+        mask_dir=getattr(args, "mask_dir", None), segment=getattr(args, "segment", "auto"),
+        detector=parse_kv(getattr(args, "detector", None) or []), threshold=getattr(args, "threshold", 0.5),
+        confirm_echoes=consistency, drop_fragments=consistency,
+        align_frames=not getattr(args, "no_align_frames", False), **front_end)

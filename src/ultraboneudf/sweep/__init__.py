@@ -1,9 +1,11 @@
 """Tracked freehand ultrasound sweeps → bone point clouds in millimetres.
 
->>> from ultraboneudf.sweep import read_sweep, sweep_to_points, points_from_sweep
->>> sweep = read_sweep("sweep_dir")                          # doctest: +SKIP
->>> cp = sweep_to_points(sweep, segment="classical")          # doctest: +SKIP
->>> cp.points, cp.frame_index, cp.beam_direction              # doctest: +SKIP
+>>> from ultraboneudf.sweep import SweepOptions, read_sweep, sweep_points
+>>> sp = sweep_points("sweep_dir", SweepOptions(segment="classical"))   # doctest: +SKIP
+>>> sp.points, sp.frame_index, sp.probe_position, sp.dropped           # doctest: +SKIP
+
+The front end (:func:`sweep_points`, :class:`SweepOptions`, :mod:`.front_end`) runs the pieces below
+in order: read, segment, compound, drop outliers, drop unconfirmed fragments, register frames.
 
 Pieces: :class:`Sweep` (frames + poses in memory), readers/writers by layout
 (:func:`read_sweep`, :func:`write_sweep`: UltraBones100k folders, PLUS ``.mha``/``.mhd``/``.igs.nrrd``,
@@ -25,6 +27,7 @@ from .learned import LearnedSegmenter, load_model
 from .model import Sweep, SweepWarning
 from .outliers import local_outlier_mask, outlier_mask, radius_outlier_mask, statistical_outlier_mask
 from .points import drop_outliers, points_from_sweep, segment_sweep, sweep_to_points
+from .front_end import SweepOptions, SweepPoints, clean_points, sweep_points
 from .formats import LAYOUTS, detect_layout, is_sweep_path, read_sweep, write_sweep
 from .segment import BoneDetector, segment_bone
 from .transforms import check_rigid, pixels_to_world, rigid_from_euler
@@ -36,4 +39,5 @@ __all__ = [
     "statistical_outlier_mask", "radius_outlier_mask",
     "sweep_to_points", "points_from_sweep", "rigid_from_euler", "check_rigid", "pixels_to_world",
     "align_frames", "AlignmentReport", "unconfirmed_fragments", "confirmed_by_frames", "drop_outliers",
+    "SweepOptions", "SweepPoints", "sweep_points", "clean_points",
 ]

@@ -1,12 +1,13 @@
-"""Sweep → bone point cloud in one call: read, segment, compound, clean.
-
-:func:`sweep_to_points` returns the points with their provenance (frame index, probe position,
-beam direction; ``reconstruct SWEEP`` passes the probe positions on, see
-:func:`ultraboneudf.reconstruct`); :func:`points_from_sweep` returns only the ``(N, 3)`` mm array.
+"""The pieces of the sweep front end (:mod:`.front_end`) by themselves: :func:`segment_sweep`
+(bone masks by the chosen segmentation), :func:`drop_outliers`; and :func:`sweep_to_points`, the
+front end without the frame registration, its options as keywords (masks may be arrays, the
+detector a :class:`BoneDetector`), which returns the points with their provenance (frame index,
+probe position, beam direction); :func:`points_from_sweep` returns only the ``(N, 3)`` mm array.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 from typing import Any, Mapping
@@ -15,8 +16,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..progress import QUIET, Progress
-from .compound import CompoundedPoints, compound
-from .consistency import confirmed_by_frames, drop_unconfirmed_fragments
+from .compound import CompoundedPoints
+from .consistency import confirmed_by_frames
 from .learned import LearnedSegmenter, is_model_path
 from .probability import probability_masks
 from .model import Sweep
@@ -100,6 +101,8 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
     Raises:
         InputError: naming the file, for unreadable sweeps, bad masks, or no bone found at all.
     """
+    from .front_end import SweepOptions, sweep_points  # noqa: PLC0415
+
     if outlier_rule not in OUTLIER_RULES:
         raise InputError(f"unknown outlier rule {outlier_rule!r}; choose one of {', '.join(OUTLIER_RULES)}")
     if not isinstance(sweep, Sweep):
@@ -120,22 +123,13 @@ def sweep_to_points(sweep: Sweep | str | os.PathLike, *, segment: str = "auto",
             raise InputError(f"masks have shape {arr.shape}, expected "
                              f"({sweep.n_frames}, {sweep.height}, {sweep.width})")
         sweep = sweep.with_masks(arr)
-    if frame_step > 1:
-        sweep = sweep.subset(np.arange(0, sweep.n_frames, int(frame_step)))
-    bone, method = segment_sweep(sweep, segment, detector, model_options, progress)
-    with progress.stage("compound", sweep.n_frames) as advance:
-        cp = compound(sweep, bone, top_only=top_only, advance=advance)
-    if len(cp) == 0:
-        raise InputError(f"{sweep.source or 'sweep'}: no bone found in any of the {sweep.n_frames} "
-                         f"frames (segmentation: {method})")
-    if remove_outliers:
-        cp = drop_outliers(cp, outlier_rule, outlier_k, outlier_std, outlier_factor, progress)
-    if remove_fragments:
-        cp = drop_unconfirmed_fragments(cp, progress)[0]
-    if frame_step > 1:  # report frame indices of the original sweep
-        cp.frame_index = cp.frame_index * int(frame_step)
-    progress.log(f"{len(cp)} bone points from {sweep.n_frames} frames ({method})")
-    return cp
+    if isinstance(detector, BoneDetector):
+        detector = dataclasses.asdict(detector)
+    options = SweepOptions(segment=segment, detector=detector or {}, top_only=top_only,
+                           remove_outliers=remove_outliers, outlier_rule=outlier_rule, outlier_k=outlier_k,
+                           outlier_std=outlier_std, outlier_factor=outlier_factor,
+                           drop_fragments=remove_fragments, frame_step=frame_step, align_frames=False)
+    return sweep_points(sweep, options, progress, model_options=model_options).cloud
 
 
 def drop_outliers(cp: CompoundedPoints, rule: str = "local", k: int = 16, std_ratio: float = 2.0,

@@ -1,73 +1,18 @@
-"""Typed configuration of a reconstruction, the named presets, and overrides.
-
-A :class:`Config` has one dataclass per stage. Every field carries the paper's or the official
-code's value (see ``docs/ALGORITHMS.md``); the presets differ only where the two disagree (§1.11) and in
-the ``fast`` preset designed here. Thresholds of the field and of the extractor are in *unit space*
-(the normalised frame of §0.1); quantities in millimetres say ``_mm`` in their name.
-
-Overrides are ``"section.field=value"`` strings (the CLI's ``--set``) or keyword arguments
-(``iters=1000``, ``train__iters=1000``); a bare field name must be unique across sections.
-"""
+"""The sections of a reconstruction's :class:`Config`, one dataclass per stage, with the paper's or
+the official code's values as defaults (``docs/ALGORITHMS.md``), and the rules derived from them
+(the ``gpu`` training budget, the network widths of a depth). Thresholds of the field and of the
+extractor are in *unit space* (the normalised frame of §0.1); quantities in millimetres say ``_mm``
+in their name."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import math
-import types
-import typing
-from dataclasses import dataclass, field, fields
-from functools import cache
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal, Mapping
 
-from .errors import InputError
-
-
-@cache
-def _hints(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
-
-
-@cache
-def field_docs(cls: type) -> dict[str, str]:
-    """The docstring under each field of a config section (the string literal that follows its
-    annotation in the class body), ``""`` where there is none. Read from the source, which is the
-    one place the fields are documented."""
-    import ast
-    import inspect
-    import textwrap
-
-    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
-    docs: dict[str, str] = {}
-    for node, after in zip(body, body[1:] + [None]):
-        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
-            doc = ""
-            if isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant) \
-                    and isinstance(after.value.value, str):
-                doc = " ".join(after.value.value.split())
-            docs[node.target.id] = doc
-    return {f.name: docs.get(f.name, "") for f in fields(cls)}
-
-
-def choices(section: Any, name: str) -> tuple[str, ...] | None:
-    """The allowed values of a mode field (annotated ``Literal[...]``) of a config section (a class
-    or an instance), or ``None`` when the field is not a mode."""
-    cls = section if isinstance(section, type) else type(section)
-    hint = _hints(cls).get(name)
-    return typing.get_args(hint) if typing.get_origin(hint) is Literal else None
-
-
-def check_choices(section: Any) -> None:
-    """Raise :class:`InputError` naming the ``--set`` key and the allowed values for every mode field
-    of ``section`` that holds a value outside its ``Literal`` type."""
-    for f in fields(section):
-        _check_choice(section, f.name, getattr(section, f.name))
-
-
-def _check_choice(section: Any, name: str, value: Any) -> None:
-    allowed = choices(section, name)
-    if allowed is not None and value not in allowed:
-        raise InputError(f"unknown {section.SECTION}.{name} {value!r}; choose one of {', '.join(allowed)}")
+from ..errors import InputError
+from .introspection import check_choices, choices
 
 
 class _Section:
@@ -245,7 +190,7 @@ class LossConfig(_Section):
     """What ``warm_start`` and ``lambda_far`` regress ``u(q)`` on: ``point``, the distance to the
     nearest surface point ``t(q)`` (the reference's target); ``surface``, the distance to the surface
     interpolated between the points across gaps up to ``data.bridge``
-    (:mod:`~ultraboneudf.geometry.support`; needs ``data.surface_fit_mm``). Between the slices of a
+    (:mod:`~ultraboneudf.geometry.data_surface`; needs ``data.surface_fit_mm``). Between the slices of a
     sweep the nearest point lies beside the query, not under it: ``point`` then asks for a ridge of
     ``u`` between the slices."""
     gs_anchors: int = 0
@@ -447,7 +392,7 @@ class PoissonConfig(_Section):
     """The Poisson library: ``auto`` (first installed of pymeshlab, open3d), ``pymeshlab`` or ``open3d``."""
     solver_threads: int = 0
     """Solver threads; 0 = ``torch.get_num_threads()``. On an oversubscribed CPU the OpenMP
-    solver slows down > 10× with 2 threads (measured 2 s → 34 s); use 1 there."""
+    solver slows down more than tenfold with 2 threads; use 1 there."""
 
 
 @dataclass
@@ -511,121 +456,13 @@ class Config:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "Config":
         """Inverse of :meth:`to_dict`; unknown keys raise :class:`InputError`."""
+        from .overrides import set_value
+
         cfg = cls()
         for section, values in data.items():
             for key, value in values.items():
-                _set(cfg, f"{section}.{key}", value)
+                set_value(cfg, f"{section}.{key}", value)
         return cfg
-
-
-# The DualMesh-UDF official driver values (§2.11): the generic defaults of the extractor.
-DMU_DEFAULTS: dict[str, Any] = dict(
-    max_depth=7, valid_threshold=0.002, min_udf=0.002, corner_factor=1.0, edge_factor=1.0,
-    plane_factor=0.15, sv_threshold=0.08, dedup_eps=1e-7,
-)
-
-
-def _official() -> Config:
-    return Config()
-
-
-def _paper() -> Config:
-    cfg = Config()
-    cfg.data = DataConfig(subset="fps", max_points=40_000, grid_queries=0, drop_to_multiple=0,
-                          anchors="bbox", anchor_squared_target=False, anchor_min_target=-1.0)
-    cfg.loss.tangent_norm = "l2"
-    cfg.loss.gs_form = "per_anchor"
-    # 256 cells across the object (depth 9 on [−1, 1]³) with the official DMU thresholds (§1.11).
-    cfg.extract = ExtractConfig(**{**DMU_DEFAULTS, "max_depth": 9})
-    # Without grid queries the far field is free to overestimate; test the band from 0.125-unit cells.
-    cfg.extract.band_start_depth = 4
-    cfg.extract.mode = "clean"  # one-layer, edge-manifold mesh; "faithful" reproduces DMU
-    cfg.extract.trim_mm = 3.0   # no surface > 3 mm from the data (README, "Support trim")
-    cfg.clean.project_steps = 0  # see _fast
-    return cfg
-
-
-def _fast() -> Config:
-    """Designed for a 100k-point cloud on a 2-core CPU (measured in docs/results.md).
-
-    What limits a short run is the number of optimiser steps: the tangent loss grows the zero set
-    outward from the initial sphere and can leave a part of the bone without one. A warm start
-    (regressing u on the distance to P) first puts a zero set near every part of the data; the
-    far-field term, applied to every query, keeps forbidding zero sets away from the data and pins u
-    to the distance near it, so the zero set reaches the open rims. A 64-wide network is as accurate
-    as 128 here at half the work; the epoch sampler and 128 random anchors a step for L_GS cut the
-    per-step overhead.
-    """
-    cfg = Config()
-    cfg.data.subset = "fps"
-    cfg.data.max_points = 10_000
-    cfg.data.queries_per_point = 20
-    cfg.data.grid_queries = 10_000
-    cfg.data.drop_to_multiple = 0
-    cfg.model.hidden = (64, 64, 64, 64)
-    cfg.model.geometric_init_radius = 0.1
-    cfg.loss.gs_form = "per_anchor"
-    cfg.loss.warm_start = 0.1
-    cfg.loss.lambda_far = 1.0
-    cfg.loss.far_threshold = 0.0
-    cfg.loss.gs_anchors = 128
-    cfg.train.iters = 10_000
-    cfg.train.batch = 250
-    cfg.train.sampler = "epoch"
-    cfg.train.threads = 1
-    cfg.train.warmup = 400
-    cfg.train.lr = 2e-3
-    cfg.train.budget = "auto"
-    cfg.extract.max_depth = 8
-    cfg.extract.mode = "clean"
-    cfg.extract.trim_mm = 3.0
-    # Trained fields' minima are not their exact zero sets: moving the QEF vertices onto them cost
-    # accuracy on every field measured (docs/results.md, "Presets").
-    cfg.clean.project_steps = 0
-    return cfg
-
-
-def _robust() -> Config:
-    """``fast`` made for what ultrasound gives: noisy, slice-structured, gappy points with false echoes.
-
-    A robust plane is fitted to the points within 4 mm of every point (mm, before normalisation):
-    points more than three robust spreads from it are dropped (false echoes in the shadow, isolated
-    detections) and the rest are moved onto it (noise along the beam, offsets between slices). The
-    warm start and the far-field term regress ``u`` on the distance to the surface interpolated
-    between the points across gaps up to the plane's radius (across a sweep's frames, when they are
-    known, up to 10 mm: a run of lost frames), instead of the distance to the nearest point, which
-    between slices lies beside the query rather than under it; past the data's rims that surface
-    goes on for half the plane radius (2 mm), where an oblique echo faded (not past a sweep's first
-    and last image planes, past which the probe never looked), also past the few echoes of a steep
-    face (planes 60–80° from the beam orient the surface there without moving the points, and keep
-    them where they are too sparse for a plane at 4 mm). The support trim measures to the bridged
-    surface, so bridged gaps stay closed, and also drops the faces 1 mm or more from it along its
-    normal (sheets the noise band leaves under or over the bone). ``L_OS`` on 256 surface points a
-    step pins the zero level to the data where few frames saw the bone and the tangent phase alone
-    leaves the field above zero there. Leaves are kept ≥ 0.75 mm, so a small bone is not meshed
-    finer than its data resolve, and the mesh's folds (faces meeting at more than 60°, where the QEF
-    vertices scatter across the noisy field's minimum) are smoothed out. The network is twice as
-    wide as ``fast``'s (4 × 128): on these points it follows the denoised surface more closely, for
-    1.6–1.8× the time (docs/robustness.md measures each part)."""
-    cfg = _fast()
-    cfg.model.hidden = (128, 128, 128, 128)
-    cfg.data.max_voxels = 200_000
-    cfg.data.surface_fit_mm = 4.0
-    cfg.data.denoise = 1
-    cfg.data.outlier_sigmas = 3.0
-    cfg.data.bridge = 1.0
-    cfg.data.frame_bridge = 2.5
-    cfg.data.rim_reach = 0.5
-    cfg.data.steep_planes_deg = 80.0
-    cfg.data.front_echo_mm = 30.0
-    cfg.data.min_component = 0.02
-    cfg.loss.distance_target = "surface"
-    cfg.loss.lambda_os = 10.0
-    cfg.loss.os_rows = 256
-    cfg.extract.min_leaf_mm = 0.75
-    cfg.extract.trim_normal_mm = 1.0
-    cfg.clean.unfold_deg = 60.0
-    return cfg
 
 
 GPU_STEP_DIVISOR = 4
@@ -683,202 +520,5 @@ def model_widths(model: ModelConfig) -> tuple[int, ...]:
     return widths
 
 
-PRESETS = {"robust": _robust, "fast": _fast, "official": _official, "paper": _paper}
-
-DEFAULT_PRESET = "robust"
-"""What ``reconstruct`` uses unless told otherwise: the best result on ultrasound-like data on a CPU."""
-
-PRESET_HELP = {
-    "robust": "the default: noisy, gappy, slice-structured ultrasound points with false echoes; "
-              "about a minute for 50,000 points on a 2-core CPU",
-    "fast": "robust without the noise handling: clean, dense clouds (e.g. sampled from a mesh)",
-    "official": "the public reference code reproduced, deviations included (a GPU run: about an hour "
-                "on a 2-core CPU)",
-    "paper": "the paper's text where it differs from the code (a GPU run)",
-}
-"""One line per preset: which to use when (``--help`` and the README)."""
-
-UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 0.001}
-"""Millimetres per unit of the units a point cloud file may be given in (``reconstruct --units``)."""
-
-def preset(name: str) -> Config:
-    """A fresh :class:`Config` of the named preset (``robust``, ``fast``, ``official`` or ``paper``)."""
-    try:
-        return PRESETS[name]()
-    except KeyError:
-        raise InputError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}") from None
-
-
-def _sections(cfg: Config) -> dict[str, Any]:
-    return {f.name: getattr(cfg, f.name) for f in fields(cfg)}
-
-
-MOVED_KEYS = {
-    **{f"model.poisson_{old}": f"poisson.{new}" for old, new in (
-        ("depth", "octree_depth"), ("scale", "scale"), ("normals", "normals"), ("orientation", "orientation"),
-        ("backend", "backend"), ("threads", "solver_threads"))},
-    **{f"train.expand_{name}": f"capudf.expand_{name}" for name in (
-        "at", "batch", "candidates", "df_filter", "low_range", "outlier", "rate")},
-    "data.capudf_total_queries": "capudf.total_queries", "loss.lambda_scc": "funsr.lambda_scc",
-    "loss.lambda_adl": "funsr.lambda_adl", "train.disc_lr": "funsr.disc_lr",
-    **{f"extract.{name}": f"grid.{name}" for name in (
-        "resolution", "box_margin", "cell_threshold", "udf2sdf", "udf2sdf_project", "far")},
-    "extract.grid_box": "grid.box",
-    **{f"extract.clean_{name}": f"clean.{name}" for name in (
-        "crossing", "vertex", "qef_window", "project_steps", "merge")},
-}
-"""Keys of earlier versions that a method's or an extractor's own section now holds: old → new."""
-
-
-def _resolve_key(cfg: Config, key: str) -> tuple[Any, str]:
-    key = key.replace("__", ".")
-    if key in MOVED_KEYS:
-        raise InputError(f"config key {key!r} is now {MOVED_KEYS[key]!r}")
-    sections = _sections(cfg)
-    if "." in key:
-        section, name = key.split(".", 1)
-        if section not in sections:
-            raise InputError(f"unknown config section {section!r} in {key!r}; "
-                             f"sections: {', '.join(sections)}")
-        obj = sections[section]
-        if name not in {f.name for f in fields(obj)}:
-            raise InputError(f"unknown config key {key!r}")
-        return obj, name
-    owners = [obj for obj in sections.values() if key in {f.name for f in fields(obj)}]
-    if len(owners) != 1:
-        what = "ambiguous" if owners else "unknown"
-        raise InputError(f"{what} config key {key!r}; write it as section.{key}")
-    return owners[0], key
-
-
-def _optional(hint: Any) -> Any:
-    """``X`` for a hint ``X | None`` (``Optional[X]``), else ``None``."""
-    args = typing.get_args(hint)
-    if typing.get_origin(hint) in (typing.Union, types.UnionType) and len(args) == 2 and type(None) in args:
-        return next(a for a in args if a is not type(None))
-    return None
-
-
-def _expected(hint: Any) -> str:
-    """How a value of type ``hint`` is written on the command line (for error messages)."""
-    if _optional(hint) is not None:
-        return _expected(_optional(hint)) + " or none"
-    if typing.get_origin(hint) is tuple:
-        inner = typing.get_args(hint)[0]
-        return "comma-separated " + ("integers" if inner is int else "numbers")
-    return {bool: "true or false", int: "an integer", float: "a number"}.get(hint, "a string")
-
-
-def coerce(hint: Any, value: Any, key: str) -> Any:
-    """Convert ``value`` (possibly a string from the command line) to the type ``hint`` of a
-    dataclass field (``bool``, ``int``, ``float``, ``str``, ``tuple[...]``, or one of them ``| None``,
-    written ``none``); :class:`InputError` naming ``key`` and the expected type otherwise."""
-    if _optional(hint) is not None:
-        if value is None or (isinstance(value, str) and value.strip().lower() in ("none", "null")):
-            return None
-        return coerce(_optional(hint), value, key)
-    try:
-        if typing.get_origin(hint) is tuple:
-            if isinstance(value, str):
-                value = json.loads("[" + value.strip("()[] ") + "]")
-            if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__"):
-                raise ValueError(value)
-            inner = typing.get_args(hint)[0]
-            return tuple(coerce(inner, v, key) for v in value)
-        if hint is bool:
-            if isinstance(value, str):
-                low = value.strip().lower()
-                if low not in {"true", "false", "1", "0", "yes", "no"}:
-                    raise ValueError(value)
-                return low in {"true", "1", "yes"}
-            if not isinstance(value, bool):
-                raise ValueError(value)
-            return value
-        if hint in (int, float):
-            if isinstance(value, str):
-                value = json.loads(value)
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ValueError(value)
-            if hint is int:
-                if float(value) != int(value):
-                    raise ValueError(value)
-                return int(value)
-            return float(value)
-        if not isinstance(value, str):
-            raise ValueError(value)
-        return value
-    except (ValueError, TypeError, OverflowError, json.JSONDecodeError):
-        raise InputError(f"bad value {value!r} for config key {key!r} (expected {_expected(hint)})") from None
-
-
-def _set(cfg: Config, key: str, value: Any) -> None:
-    obj, name = _resolve_key(cfg, key)
-    hint = _hints(type(obj))[name]
-    value = coerce(str if choices(obj, name) else hint, value, key)
-    _check_choice(obj, name, value)
-    setattr(obj, name, value)
-
-
-MAX_DEPTH = 11
-"""Deepest octree a run may ask for (2,048 leaves per axis; depth 12 exceeds a workstation's memory)."""
-
-
 GS_FORMS: tuple[str, ...] = choices(LossConfig, "gs_form")
 """The forms of ``L_GS`` (:attr:`LossConfig.gs_form`)."""
-
-
-def validate(cfg: Config, trains: bool = True) -> Config:
-    """Raise :class:`InputError` for values no run can use (named by their ``--set`` spelling);
-    returns ``cfg``. ``trains``: the method trains a network (Poisson does not, and sets no
-    iterations)."""
-    problems = []
-
-    def need(ok: bool, key: str, what: str) -> None:
-        if not ok:
-            section, name = key.split(".")
-            problems.append(f"{key}={getattr(getattr(cfg, section), name)!r} ({what})")
-
-    for section in _sections(cfg).values():
-        check_choices(section)
-        for f in fields(section):
-            value = getattr(section, f.name)
-            if isinstance(value, float) and not math.isfinite(value):
-                problems.append(f"{section.SECTION}.{f.name}={value!r} (a finite number)")
-    t, d, e, lo = cfg.train, cfg.data, cfg.extract, cfg.loss
-    need(t.iters >= (1 if trains else 0), "train.iters", "at least 1")
-    need(t.batch >= 1, "train.batch", "at least 1")
-    need(math.isfinite(t.lr) and 0 < t.lr <= 1, "train.lr", "a learning rate in (0, 1]")
-    need(t.warmup >= 0, "train.warmup", "0 or more")
-    need(0.0 <= lo.warm_start < 1.0, "loss.warm_start", "a fraction in [0, 1)")
-    need(1 <= e.max_depth <= MAX_DEPTH, "extract.max_depth", f"between 1 and {MAX_DEPTH}")
-    need(cfg.grid.resolution >= 2, "grid.resolution", "at least 2")
-    for key in ("data.voxel_size_mm", "data.surface_fit_mm", "data.bridge", "data.frame_bridge", "data.rim_reach",
-                "data.shadow_mm", "data.outlier_sigmas", "extract.trim_mm", "extract.trim_normal_mm",
-                "extract.fit_mm", "extract.min_leaf_mm"):
-        section, name = key.split(".")
-        value = getattr(getattr(cfg, section), name)
-        need(math.isfinite(value) and value >= 0, key, "finite and 0 or more")
-    if e.trim_normal_mm > 0 and d.surface_fit_mm <= 0:
-        problems.append("extract.trim_normal_mm needs the local planes: set data.surface_fit_mm > 0")
-    need(d.denoise >= 0, "data.denoise", "0 or more passes")
-    need(d.steep_planes_deg == 0 or 60 < d.steep_planes_deg < 90, "data.steep_planes_deg",
-         "0 (none) or an angle between 60 and 90 degrees")
-    need(d.max_voxels >= 0, "data.max_voxels", "0 (no limit) or more")
-    need(lo.gs_anchors >= 0, "loss.gs_anchors", "0 (all) or more")
-    need(lo.os_rows >= 0, "loss.os_rows", "0 (all) or more")
-    if problems:
-        raise InputError("bad configuration: " + "; ".join(problems))
-    return cfg
-
-
-def apply_overrides(cfg: Config, overrides: Mapping[str, Any] | None = None,
-                    assignments: list[str] | tuple[str, ...] = ()) -> Config:
-    """Apply keyword overrides and ``key=value`` strings to ``cfg`` in place; returns ``cfg``."""
-    for key, value in (overrides or {}).items():
-        _set(cfg, key, value)
-    for item in assignments:
-        if "=" not in item:
-            raise InputError(f"--set expects key=value, got {item!r}")
-        key, value = item.split("=", 1)
-        _set(cfg, key.strip(), value.strip())
-    return cfg
