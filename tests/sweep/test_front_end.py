@@ -93,3 +93,36 @@ def test_a_sweep_in_memory_takes_no_reading_options(sweep):
     np.testing.assert_array_equal(sweep_points(sw).points, sweep_points(sweep).points)
     with pytest.raises(TypeError, match="mask_dir"):
         sweep_points(sw, SweepOptions(mask_dir="masks"))
+
+
+def test_frames_that_are_a_bone_map(sweep, tmp_path, capsys):
+    """A sequence whose frames are already a bone map (a bone enhancer's output: dark but for the
+    bone) is refused by the classical detector with the way out in the message, and segmented by
+    ``--segment probability``: the same points as the sweep's own masks give."""
+    import dataclasses
+
+    from ultraboneudf.sweep import read_sweep, write_sweep
+
+    sw = read_sweep(sweep)
+    enhanced = dataclasses.replace(sw, images=np.where(sw.masks, 230, 0).astype(np.uint8), masks=None)
+    path = write_sweep(enhanced, tmp_path / "enhanced.mha")
+    out = tmp_path / "points.npz"
+    assert main(["sweep2points", str(path), "-o", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no bone found" in err and "give --segment probability" in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+    assert main(["sweep2points", str(path), "--segment", "probability", "-o", str(out), "--quiet"]) == 0
+    options = SweepOptions(align_frames=False)
+    by_masks = sweep_points(sweep, options)
+    by_map = sweep_points(path, dataclasses.replace(options, segment="probability"))
+    assert by_map.segmentation == "probability" and len(by_map) > 100
+    np.testing.assert_allclose(by_map.points, by_masks.points, atol=1e-6)
+    with np.load(out) as written:
+        assert len(written["points"]) == len(sweep_points(path, SweepOptions(segment="probability")))
+    # above full brightness nothing is bone; a threshold outside (0, 1] is refused
+    assert main(["sweep2points", str(path), "--segment", "probability", "--threshold", "0.95",
+                 "-o", str(tmp_path / "none.npz"), "--quiet"]) == 2
+    assert "no bone found" in capsys.readouterr().err
+    with pytest.raises(InputError, match="threshold"):
+        sweep_points(path, SweepOptions(segment="probability", threshold=0.0))

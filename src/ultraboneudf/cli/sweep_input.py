@@ -16,6 +16,9 @@ from ..errors import InputError
 if TYPE_CHECKING:
     from ..sweep.front_end import SweepOptions
 
+# the --segment values that name a segmentation rather than a model file (sweep.points'
+# SEGMENT_CHOICES, spelled out so that the command line starts without importing the sweep package)
+SEGMENT_NAMES = ("auto", "masks", "classical", "probability")
 
 
 def add_sweep_options(p: argparse.ArgumentParser) -> None:
@@ -80,7 +83,7 @@ def sweep_inputs(args: argparse.Namespace) -> list[Path]:
     named = [getattr(args, "calibration", None), getattr(args, "masks", None),
              *(getattr(args, "transforms", None) or [])]
     segment = getattr(args, "segment", "auto")
-    if segment not in ("auto", "masks", "classical"):
+    if segment not in SEGMENT_NAMES:
         named.append(Path(segment))
     return [Path(p) for p in named if p is not None]
 
@@ -108,13 +111,13 @@ def check_sweep_options(path: Path, args: argparse.Namespace) -> None:
             raise InputError(f"--detector {', '.join(args.detector)}: {exc}") from None
         if args.segment not in ("auto", "classical"):
             raise InputError(f"--detector applies to the classical detector, not --segment {args.segment}")
-    if args.segment not in ("auto", "masks", "classical"):
+    if args.segment not in SEGMENT_NAMES:
         from ..sweep.learned import LearnedSegmenter, is_model_path
 
         model = check_input(args.segment, "model file")
         if not is_model_path(str(model)):
-            raise InputError(f"--segment {model}: use auto, masks, classical or the path of a TorchScript "
-                             f"(.pt) or ONNX (.onnx) model file")
+            raise InputError(f"--segment {model}: use auto, masks, classical, probability or the path of a "
+                             f"TorchScript (.pt) or ONNX (.onnx) model file")
         LearnedSegmenter(model, threshold=args.threshold)  # a file that is not a model fails here
     if args.masks is not None:
         _check_mask_count(path, check_input(args.masks, "mask file or folder", folder=True))

@@ -330,7 +330,8 @@ def _segment(sweep: Sweep, o: SweepOptions, name: str, where: str, progress: Pro
                 why = "; no frame images soft tissue (water or gel only)"
                 if looks_like_bone_map(sweep.images):
                     why += ("; if the frames are a bone map (dark but for the bone, e.g. a bone "
-                            "enhancer's output), segment them as a probability map (probability)")
+                            "enhancer's output), give --segment probability (in Python, "
+                            "SweepOptions(segment=\"probability\"))")
             elif record["no_tissue_frames"] or record["low_confidence_frames"]:
                 why = (f"; {record['no_tissue_frames']} frame(s) image no soft tissue, "
                        f"{record['low_confidence_frames']} have only weak echoes")
