@@ -101,7 +101,11 @@ def test_frames_that_are_a_bone_map(sweep, tmp_path, capsys):
     ``--segment probability``: the same points as the sweep's own masks give."""
     import dataclasses
 
+    from ultraboneudf.cli.sweep_input import SEGMENT_NAMES
     from ultraboneudf.sweep import read_sweep, write_sweep
+    from ultraboneudf.sweep.points import SEGMENT_CHOICES
+
+    assert SEGMENT_NAMES == SEGMENT_CHOICES  # the command line's copy, kept to start without the sweep package
 
     sw = read_sweep(sweep)
     enhanced = dataclasses.replace(sw, images=np.where(sw.masks, 230, 0).astype(np.uint8), masks=None)
@@ -120,7 +124,7 @@ def test_frames_that_are_a_bone_map(sweep, tmp_path, capsys):
     np.testing.assert_allclose(by_map.points, by_masks.points, atol=1e-6)
     with np.load(out) as written:
         assert len(written["points"]) == len(sweep_points(path, SweepOptions(segment="probability")))
-    # above full brightness nothing is bone; a threshold outside (0, 1] is refused
+    # a threshold above the map's brightness (230 of 255) finds nothing; one outside (0, 1] is refused
     assert main(["sweep2points", str(path), "--segment", "probability", "--threshold", "0.95",
                  "-o", str(tmp_path / "none.npz"), "--quiet"]) == 2
     assert "no bone found" in capsys.readouterr().err
