@@ -131,8 +131,8 @@ def main() -> int:
         if not (args.plus / name).exists():
             print(json.dumps({"file": name, "outcome": "not present, skipped"}), flush=True)
             continue
-        cal = ["--calibration", args.plus / cfg, *extra] if cfg else list(extra)
-        cmd = ["sweep2points", args.plus / name, *cal, "-o", args.out / f"{name}.ply", "--quiet"]
+        flags = (["--calibration", args.plus / cfg] if cfg else []) + extra
+        cmd = ["sweep2points", args.plus / name, *flags, "-o", args.out / f"{name}.ply", "--quiet"]
         code, out, err, dt = cli(*cmd)
         row = {"file": name, "command": "ultraboneudf " + " ".join(
             _shown(c, args) for c in cmd),
@@ -141,7 +141,7 @@ def main() -> int:
         print(json.dumps(row, ensure_ascii=False), flush=True)
         if name in RECONSTRUCT and code == 0:
             mesh = args.out / f"{RECONSTRUCT[name]}.ply"
-            cmd = ["reconstruct", args.plus / name, *cal, "-o", mesh, "--quiet"]
+            cmd = ["reconstruct", args.plus / name, *flags, "-o", mesh, "--quiet"]
             code, out, err, dt = cli(*cmd)
             side = json.loads(sidecar_path(mesh).read_text()) if code == 0 else {}
             rec = {"file": name, "command": "ultraboneudf " + " ".join(
