@@ -136,6 +136,13 @@ def test_modes_checked_on_construction_and_before_a_run():
     cfg.extract.trim_normal_mm = 1.0  # the fast preset fits no local planes to measure along
     with pytest.raises(InputError, match="extract.trim_normal_mm needs the local planes"):
         validate(cfg)
+    cfg = preset("fast")
+    cfg.extract.trim_rim_mm = 1.0  # nor a surface with rims
+    with pytest.raises(InputError, match="extract.trim_rim_mm needs the local planes"):
+        validate(cfg)
+    cfg.extract.trim_rim_mm = float("nan")
+    with pytest.raises(InputError, match=r"extract.trim_rim_mm=nan \(finite and 0 or more\)"):
+        validate(cfg)
     for angle in (45.0, 90.0):        # steep planes lie beyond the 60° the planes accept
         cfg = preset("robust")
         cfg.data.steep_planes_deg = angle

@@ -133,7 +133,7 @@ class Reconstruction:
 
     @property
     def support(self) -> np.ndarray | DataSurface | None:
-        """What the support trim (``extract.trim_mm``, ``extract.trim_normal_mm``) measures distances
+        """What the support trim (``extract.trim_mm``, ``trim_normal_mm``, ``trim_rim_mm``) measures distances
         to, in unit space."""
         return None if self.surface is None else self.surface.support
 
@@ -408,7 +408,7 @@ class FittedSurface:
         else:
             unit_mesh = None
         mesh, trimmed = _trim_and_map(unit_mesh, self.support, self.normalizer, cfg.trim_mm,
-                                      cfg.trim_normal_mm)
+                                      cfg.trim_normal_mm, cfg.trim_rim_mm)
         return mesh, trimmed, cfg
 
 
@@ -475,13 +475,14 @@ def resolve_leaf_size(cfg: ExtractConfig, normalizer: Normalizer) -> ExtractConf
 
 
 def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, normalizer: Normalizer,
-                  trim_mm: float, trim_normal_mm: float = 0.0) -> tuple[trimesh.Trimesh | None, int]:
-    """The support trim (``extract.trim_mm`` and ``extract.trim_normal_mm``, against the unit-space
+                  trim_mm: float, trim_normal_mm: float = 0.0, trim_rim_mm: float = 0.0
+                  ) -> tuple[trimesh.Trimesh | None, int]:
+    """The support trim (``extract.trim_mm``, ``trim_normal_mm`` and ``trim_rim_mm``, against the unit-space
     ``support``), then the one map back to mm. Returns the mesh in mm (``None`` when nothing is
     left) and the faces removed."""
     if unit_mesh is None:
         return None, 0
     trimmed = trim_to_support(unit_mesh, support, trim_mm / normalizer.scale,
-                              trim_normal_mm / normalizer.scale)
+                              trim_normal_mm / normalizer.scale, trim_rim_mm / normalizer.scale)
     removed = len(unit_mesh.faces) - (0 if trimmed is None else len(trimmed.faces))
     return (None if trimmed is None else normalizer.inverse_mesh(trimmed)), removed

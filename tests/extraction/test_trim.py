@@ -70,3 +70,54 @@ def test_normal_trim_drops_a_parallel_sheet_but_keeps_the_rim_continuation():
     # the normal rule alone, and no effect against bare points (no normals to measure along)
     assert trim_to_support(mesh, surface, 0.0, max_normal=0.2).area == pytest.approx(top.area, rel=1e-9)
     assert trim_to_support(mesh, data, 0.6, max_normal=0.2) is mesh
+
+
+
+def square_sweep(gap_x: float = 0.0, gap_y: float = 0.0, bridge: float = 0.0, frames: bool = True):
+    """Points every 0.05 on the square [−1, 1]² at z = 0 with upward planes, less the strips
+    |x| < ``gap_x`` / 2 and |y| < ``gap_y`` / 2, as a DataSurface bridging gaps up to ``bridge``;
+    with ``frames``, each row of constant y is a frame of a sweep along y (image planes x–z)."""
+    from ultraboneudf.geometry.data_surface import DataSurface
+
+    a = np.linspace(-1.0, 1.0, 41)
+    xx, yy = np.meshgrid(a, a, indexing="ij")
+    data = np.c_[xx.ravel(), yy.ravel(), np.zeros(xx.size)]
+    row = np.rint((data[:, 1] + 1.0) / 0.05)
+    keep = (np.abs(data[:, 0]) >= gap_x / 2) & (np.abs(data[:, 1]) >= gap_y / 2)
+    data, row = data[keep], row[keep]
+    sweep = {"frame_axis": np.tile([0.0, 1.0, 0.0], (len(data), 1)), "frame_order": row,
+             "frame_bridge": 0.06} if frames else {}
+    return DataSurface(data, np.tile([0.0, 0.0, 1.0], (len(data), 1)), bridge=np.full(len(data), bridge),
+                       **sweep)
+
+
+def test_rim_trim_stops_the_continuation_within_the_image_planes():
+    """The plane z = 0 over [−1.4, 1.4]² on a sweep's data covering [−1, 1]²: the distance rule at
+    0.6 keeps it all (its corners lie 0.57 from the data); at 0.2 past the rim within the image
+    planes, it stops 0.2 past the frames' ends (|x| = 1) and goes on past the first and last frames
+    (|y| = 1), where the probe did not look: 2.4 × 2.8, within a grid cell of 0.05 around the rim."""
+    surface = square_sweep()
+    mesh = plane(n=57, half=1.4)
+    assert trim_to_support(mesh, surface, 0.6) is mesh
+    out = trim_to_support(mesh, surface, 0.6, max_rim=0.2)
+    assert out.area == pytest.approx(2.4 * 2.8, abs=2 * 2.8 * 0.05 / 2)
+    centres = out.vertices[out.faces].mean(axis=1)
+    assert np.abs(centres[:, 0]).max() < 1.2 + 0.025
+    assert np.abs(centres[:, 1]).max() > 1.4 - 0.025
+    # the rule alone; no effect without the frames, nor against bare points
+    assert trim_to_support(mesh, surface, 0.0, max_rim=0.2).area == pytest.approx(out.area, rel=1e-9)
+    assert trim_to_support(mesh, square_sweep(frames=False), 0.6, max_rim=0.2) is mesh
+    assert trim_to_support(mesh, surface.points, 0.6, max_rim=0.2) is mesh
+
+
+def test_rim_trim_opens_only_the_gaps_the_probe_looked_into():
+    """A gap within the frames (|x| < 0.2) stays closed where bridged and opens where not (its
+    middle lies 0.1 or more past either side's last echo); a gap across the frames (|y| < 0.2,
+    frames lost) stays closed either way: the probe did not look there."""
+    mesh = plane(n=41, half=1.0)
+    assert trim_to_support(mesh, square_sweep(gap_x=0.4, bridge=0.5), 0.6, max_rim=0.05) is mesh
+    out = trim_to_support(mesh, square_sweep(gap_x=0.4), 0.6, max_rim=0.05)
+    centres = out.vertices[out.faces].mean(axis=1)
+    assert np.abs(centres[:, 0]).min() > 0.1
+    assert out.area < mesh.area - 2 * 0.1
+    assert trim_to_support(mesh, square_sweep(gap_y=0.4), 0.6, max_rim=0.05) is mesh

@@ -168,7 +168,8 @@ def test_cli_reconstruct_sweep_orients_toward_the_probe(stub_solver, tmp_path):
     out = tmp_path / "mesh.ply"
     # the stub solver's mesh (a unit icosahedron) is nowhere near the data: no support trim
     assert main(["reconstruct", str(tmp_path / "sw"), "-o", str(out), "--method", "poisson", "--quiet",
-                 "--set", "extract.trim_mm=0", "--set", "extract.trim_normal_mm=0"]) == 0
+                 "--set", "extract.trim_mm=0", "--set", "extract.trim_normal_mm=0",
+                 "--set", "extract.trim_rim_mm=0"]) == 0
     side = json.loads(sidecar_path(out).read_text())
     assert side["method_info"]["poisson_orientation"] == "probe"
     _, normals = stub_solver[-1]

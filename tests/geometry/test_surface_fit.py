@@ -178,7 +178,7 @@ def test_data_surface_bridges_gaps_between_slices_but_not_past_the_rim():
     bare = DataSurface(pts, np.zeros_like(pts), bridge=np.full(len(pts), 6.0), reach=3.0)
     assert bare.distance(q[:1])[0] == pytest.approx(np.hypot(2.5, 0.3))
     # along the normal: the same over a gap, the height above the plane past the rim, 0 without planes
-    total, normal = surface.distances(q)
+    total, normal, _ = surface.distances(q)
     np.testing.assert_allclose(total, surface.distance(q))
     np.testing.assert_allclose(normal, [0.3, 0.5, 0.2, 0.3, 0.0], atol=1e-9)
     assert bare.distances(q[3:4])[1][0] == 0.0

@@ -161,12 +161,13 @@ def validate(cfg: Config, trains: bool = True) -> Config:
     need(cfg.grid.resolution >= 2, "grid.resolution", "at least 2")
     for key in ("data.voxel_size_mm", "data.surface_fit_mm", "data.bridge", "data.frame_bridge", "data.rim_reach",
                 "data.shadow_mm", "data.outlier_sigmas", "extract.trim_mm", "extract.trim_normal_mm",
-                "extract.fit_mm", "extract.min_leaf_mm"):
+                "extract.trim_rim_mm", "extract.fit_mm", "extract.min_leaf_mm"):
         section, name = key.split(".")
         value = getattr(getattr(cfg, section), name)
         need(math.isfinite(value) and value >= 0, key, "finite and 0 or more")
-    if e.trim_normal_mm > 0 and d.surface_fit_mm <= 0:
-        problems.append("extract.trim_normal_mm needs the local planes: set data.surface_fit_mm > 0")
+    for name in ("trim_normal_mm", "trim_rim_mm"):
+        if getattr(e, name) > 0 and d.surface_fit_mm <= 0:
+            problems.append(f"extract.{name} needs the local planes: set data.surface_fit_mm > 0")
     need(d.denoise >= 0, "data.denoise", "0 or more passes")
     need(d.steep_planes_deg == 0 or 60 < d.steep_planes_deg < 90, "data.steep_planes_deg",
          "0 (none) or an angle between 60 and 90 degrees")

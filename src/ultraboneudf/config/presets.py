@@ -91,7 +91,9 @@ def _robust() -> Config:
     face (planes 60–80° from the beam orient the surface there without moving the points, and keep
     them where they are too sparse for a plane at 4 mm). The support trim measures to the bridged
     surface, so bridged gaps stay closed, and also drops the faces 1 mm or more from it along its
-    normal (sheets the noise band leaves under or over the bone). ``L_OS`` on 256 surface points a
+    normal (sheets the noise band leaves under or over the bone) and, on a sweep, those 0.5 mm or more
+    past its rims within the image planes (the field's continuation of a sheet where the bone curves
+    away from the beam). ``L_OS`` on 256 surface points a
     step pins the zero level to the data where few frames saw the bone and the tangent phase alone
     leaves the field above zero there. Leaves are kept ≥ 0.75 mm, so a small bone is not meshed
     finer than its data resolve, and the mesh's folds (faces meeting at more than 60°, where the QEF
@@ -115,6 +117,7 @@ def _robust() -> Config:
     cfg.loss.os_rows = 256
     cfg.extract.min_leaf_mm = 0.75
     cfg.extract.trim_normal_mm = 1.0
+    cfg.extract.trim_rim_mm = 0.5
     cfg.clean.unfold_deg = 60.0
     return cfg
 

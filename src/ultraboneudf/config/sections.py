@@ -306,6 +306,14 @@ class ExtractConfig(_Section):
     that the extractor meshes as sheets a millimetre or two under or over the bone, which the
     distance rule of ``trim_mm`` keeps; a surface continued in its own plane past a rim is not
     affected."""
+    trim_rim_mm: float = 0.0
+    """A third support trim, past the data's rims where a sweep's probe looked: drop the faces whose
+    mean vertex distance past the rim of the local planes' surface, within the image plane of the
+    nearest point's frame, is ≥ this many mm; 0 = off. The field continues a sheet in its own plane
+    past a rim, and the distance rule of ``trim_mm`` keeps that continuation for its whole length;
+    within an image plane the probe looked on past the last echo and found no bone (a small bone's
+    sides curving away from the beam), across the image planes it did not look. Needs the frames
+    (``reconstruct SWEEP``, or ``frame_index=``): a cloud without them is not affected."""
     min_leaf_mm: float = 0.0
     """Leaves no smaller than this (mm): the octree depth is lowered from ``max_depth`` until the leaf
     edge reaches it, so a small bone is not meshed at a resolution finer than the data resolve (a

@@ -18,35 +18,38 @@ from ..geometry.data_surface import DataSurface
 
 
 def unsupported_faces(mesh: trimesh.Trimesh, support: np.ndarray | DataSurface, max_distance: float,
-                      max_normal: float = 0.0) -> np.ndarray:
+                      max_normal: float = 0.0, max_rim: float = 0.0) -> np.ndarray:
     """(F,) bool: the faces of ``mesh`` whose mean vertex distance to ``support`` is ≥
     ``max_distance`` (same units as the mesh; ≤ 0: no limit) — the support-trim rule. ``support``:
     points (N, 3) (distance to the nearest one) or a
     :class:`~ultraboneudf.geometry.data_surface.DataSurface` (distance to the surface bridged across the
-    data's gaps); with a ``DataSurface`` and ``max_normal`` > 0, also the faces whose mean vertex
-    distance along the surface's normal is ≥ ``max_normal``."""
+    data's gaps); with a ``DataSurface``, also the faces whose mean vertex distance along the
+    surface's normal is ≥ ``max_normal`` (> 0), and those whose mean vertex distance past its rim
+    within a sweep's image planes is ≥ ``max_rim`` (> 0)."""
+    normal = rim = None
     if isinstance(support, DataSurface):
-        dist, normal = support.distances(mesh.vertices)
+        dist, normal, rim = support.distances(mesh.vertices)
     else:
         dist, _ = kd_tree(support).query(mesh.vertices, k=1, workers=-1)
-        normal = None
     out = np.zeros(len(mesh.faces), dtype=bool)
     if max_distance > 0:
         out |= dist[mesh.faces].mean(axis=1) >= max_distance
     if normal is not None and max_normal > 0:
         out |= normal[mesh.faces].mean(axis=1) >= max_normal
+    if rim is not None and max_rim > 0:
+        out |= rim[mesh.faces].mean(axis=1) >= max_rim
     return out
 
 
 def trim_to_support(mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, max_distance: float,
-                    max_normal: float = 0.0) -> trimesh.Trimesh | None:
+                    max_normal: float = 0.0, max_rim: float = 0.0) -> trimesh.Trimesh | None:
     """``mesh`` without the faces of :func:`unsupported_faces` (mean vertex distance to ``support``
-    ≥ ``max_distance``, or along a ``DataSurface``'s normal ≥ ``max_normal``; same units as the mesh)
-    and without the vertices no face uses any more. Both limits ≤ 0 return ``mesh`` unchanged;
-    ``None`` when no face is left."""
-    if mesh is None or (max_distance <= 0 and max_normal <= 0):
+    ≥ ``max_distance``, or from a ``DataSurface`` along its normal ≥ ``max_normal`` or past its rim
+    within a sweep's image planes ≥ ``max_rim``; same units as the mesh) and without the vertices no face uses any
+    more. All limits ≤ 0 return ``mesh`` unchanged; ``None`` when no face is left."""
+    if mesh is None or (max_distance <= 0 and max_normal <= 0 and max_rim <= 0):
         return mesh
-    keep = ~unsupported_faces(mesh, support, max_distance, max_normal)
+    keep = ~unsupported_faces(mesh, support, max_distance, max_normal, max_rim)
     if keep.all():
         return mesh
     if not keep.any():

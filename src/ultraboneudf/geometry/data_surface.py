@@ -32,7 +32,10 @@ the probe never looked: the rim reach stops at those planes.
 :meth:`DataSurface.distances` also gives the part of that distance along the surface's normal: over
 a gap the same distance, elsewhere the height above the nearest point's plane (0 where it has no
 plane). A sheet that runs parallel to the data a millimetre under them is far along the normal; a
-surface continued in its own plane past a rim is not.
+surface continued in its own plane past a rim is not. And, where the nearest point's frame is known,
+how far past the rim the query lies *within that frame's image plane*: there the probe looked on
+past the last echo and found no bone (a small bone's silhouette, where it curves away from the
+beam), whereas across the image planes it did not look.
 """
 
 from __future__ import annotations
@@ -99,16 +102,18 @@ class DataSurface:
         """(M,) distance from each row of ``x`` (M, 3) to the surface (see the module docstring)."""
         return self.distances(x, chunk)[0]
 
-    def distances(self, x: np.ndarray, chunk: int = 65_536) -> tuple[np.ndarray, np.ndarray]:
-        """The distance (M,) from each row of ``x`` (M, 3) to the surface, and its part (M,) along the
-        surface's normal (see the module docstring)."""
+    def distances(self, x: np.ndarray, chunk: int = 65_536) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The distance (M,) from each row of ``x`` (M, 3) to the surface, its part (M,) along the
+        surface's normal, and how far (M,) past the surface's rim it lies within the nearest point's
+        image plane (0 over the data and its bridged gaps, and where the frames are unknown; see the
+        module docstring)."""
         x = np.asarray(x, dtype=np.float64)
-        total, normal = np.empty(len(x)), np.empty(len(x))
+        out = np.empty((3, len(x)))
         for start in range(0, len(x), chunk):
-            total[start:start + chunk], normal[start:start + chunk] = self._distances(x[start:start + chunk])
-        return total, normal
+            out[:, start:start + chunk] = self._distances(x[start:start + chunk])
+        return out[0], out[1], out[2]
 
-    def _distances(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _distances(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         dist, idx = self.tree.query(x, k=self.k, workers=-1)
         dist, idx = dist.reshape(len(x), self.k), idx.reshape(len(x), self.k)
         first = idx[:, 0]
@@ -165,4 +170,13 @@ class DataSurface:
             side = np.sqrt(np.maximum(b0 ** 2 - past ** 2, 0.0))
             cut = np.sqrt(a0 ** 2 + past ** 2 + np.maximum(side - self.reach[first], 0.0) ** 2)
             beyond = np.where(past > 0.0, cut, beyond)
-        return np.where(has, between, beyond), np.where(has, between, np.abs(a0))
+        seen = np.zeros(len(x))
+        if self.frame_axis is not None:
+            # the in-plane offset past the rim, less its part across the image planes
+            axis = self.frame_axis[first]
+            axis = axis - np.einsum("mi,mi->m", axis, n)[:, None] * n
+            known = np.linalg.norm(axis, axis=1) > 0.5
+            across_frames = np.abs(np.einsum("mi,mi->m", inplane[:, 0], _unit(axis)))
+            within = np.sqrt(np.maximum(b0 ** 2 - across_frames ** 2, 0.0))
+            seen = np.where(known & ~has, np.maximum(within - self.reach[first], 0.0), 0.0)
+        return np.where(has, between, beyond), np.where(has, between, np.abs(a0)), seen
