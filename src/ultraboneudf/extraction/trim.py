@@ -45,8 +45,8 @@ def trim_to_support(mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurf
                     max_normal: float = 0.0, max_rim: float = 0.0) -> trimesh.Trimesh | None:
     """``mesh`` without the faces of :func:`unsupported_faces` (mean vertex distance to ``support``
     ≥ ``max_distance``, or from a ``DataSurface`` along its normal ≥ ``max_normal`` or past its rim
-    within a sweep's image planes ≥ ``max_rim``; same units as the mesh) and without the vertices no face uses any
-    more. All limits ≤ 0 return ``mesh`` unchanged; ``None`` when no face is left."""
+    within a sweep's image planes ≥ ``max_rim``; same units as the mesh) and without the vertices
+    no face uses any more. All limits ≤ 0 return ``mesh`` unchanged; ``None`` when no face is left."""
     if mesh is None or (max_distance <= 0 and max_normal <= 0 and max_rim <= 0):
         return mesh
     keep = ~unsupported_faces(mesh, support, max_distance, max_normal, max_rim)
