@@ -72,7 +72,6 @@ def test_normal_trim_drops_a_parallel_sheet_but_keeps_the_rim_continuation():
     assert trim_to_support(mesh, data, 0.6, max_normal=0.2) is mesh
 
 
-
 def square_sweep(gap_x: float = 0.0, gap_y: float = 0.0, bridge: float = 0.0, frames: bool = True):
     """Points every 0.05 on the square [−1, 1]² at z = 0 with upward planes, less the strips
     |x| < ``gap_x`` / 2 and |y| < ``gap_y`` / 2, as a DataSurface bridging gaps up to ``bridge``;
