@@ -23,7 +23,7 @@ def shaft(n=30_000, noise=0.5, seed=0, half_angle=100.0, length=80.0):
 def soft_tissue(seed=1):
     """What real segmentations add in front of a shaft: a sheet 8 mm over it (600 points over
     30 × 16 mm: a third of the bone's density), streaks rising from it along the normal, and a
-    cluster floating beyond the end of the shaft, over no bone."""
+    cluster floating beyond the end of the shaft, over no bone and off the plane of its surface."""
     rng = np.random.default_rng(seed)
     x, a = rng.uniform(-15, 15, 600), np.radians(rng.uniform(-35, 35, 600))
     sheet = np.c_[x, (RADIUS + 8.0) * np.sin(a), (RADIUS + 8.0) * np.cos(a)]
@@ -32,7 +32,7 @@ def soft_tissue(seed=1):
         x0, a0 = rng.uniform(-35, 35), np.radians(rng.uniform(-60, 60))
         r = np.linspace(RADIUS + 4.0, RADIUS + 18.0, 40)
         streaks.append(np.c_[np.full(40, x0), r * np.sin(a0), r * np.cos(a0)])
-    cluster = np.c_[rng.normal(85, 1.5, 150), rng.normal(0, 1.5, 150), rng.normal(RADIUS + 10, 1.0, 150)]
+    cluster = np.c_[rng.normal(55, 1.5, 150), rng.normal(0, 1.5, 150), rng.normal(RADIUS + 20, 1.0, 150)]
     return sheet, np.concatenate(streaks), cluster
 
 
@@ -107,3 +107,21 @@ def test_small_components_are_the_groups_smaller_than_a_share_of_the_largest():
     spare = np.zeros(len(pts), dtype=bool)
     spare[5_010] = True
     assert not small_components(pts, 4.0, 0.02, spare).any()
+
+
+def test_a_detached_group_in_the_plane_of_the_surface_is_kept_and_one_off_it_dropped():
+    """Bone seen apart from the rest (past a gap in the coverage, its band of echoes as thick as
+    the rest's) continues the surface in its plane; a cluster floating in the soft tissue beside it
+    lies off that plane, and one frame's curve in that plane is no piece of surface."""
+    rng = np.random.default_rng(6)
+    bone = np.c_[rng.uniform(0, 50, (8_000, 2)), rng.normal(0, 0.8, 8_000)]
+    patch = np.c_[rng.uniform(58, 66, 80), rng.uniform(10, 20, 80), rng.normal(0, 0.8, 80)]
+    floating = patch + [0.0, 20.0, 15.0]
+    x = rng.uniform(58, 70, 60)
+    curve = np.c_[x, np.full(60, 40.0), 0.02 * (x - 58) ** 2]  # in the plane y = 40
+    pts = np.r_[bone, patch, floating, curve]
+    planes = fit_local_planes(pts, 4.0)
+    out = small_components(pts, 4.0, 0.02, normals=planes.normal)
+    assert not out[:8_080].any() and out[8_080:].all()
+    # judged by size alone, the detached groups are all dropped
+    assert small_components(pts, 4.0, 0.02)[8_000:].all()

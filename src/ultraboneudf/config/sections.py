@@ -105,7 +105,9 @@ class DataConfig(_Section):
     """After ``front_echo_mm``: drop the groups of points (linked across gaps under
     ``surface_fit_mm``) smaller than this fraction of the largest group — clusters of echoes
     detached from the bone — but not those holding a steep face's echoes (``steep_planes_deg``,
-    sweeps: a small bone's steep sides return a few echoes apart from the rest); 0 = keep all."""
+    sweeps: a small bone's steep sides return a few echoes apart from the rest), nor those lying in
+    the plane of the kept surface where it is nearest to them (bone seen apart from the rest, past
+    a gap in the coverage; a floating cluster lies off that plane); 0 = keep all."""
     bridge: float = 0.0
     """Gaps in the data up to this × the local plane radius (``surface_fit_mm``, or the wider radius
     the fit needed, at most twice ``surface_fit_mm``) count as surface: for the ``surface`` distance target and for the support trim

@@ -49,6 +49,9 @@ _CONSENSUS_ROUNDS = 3
 _CONVEXITY = 20.0     # mm: the scale at which bone is convex (a femoral shaft's radius is 12-15 mm)
 _DENSE = 0.5          # a representative's neighbourhood holds at least this × the median count
 _BEAM_TOLERANCE = 1.0  # mm: how near its beam the bone under a sweep's false echo lies
+_ALONG_DEG = 35.0     # a detached group within this of the kept surface's plane continues it
+_SURFACE_REACH = 2.5  # × the groups' link: the extent of the kept surface's plane a group is held to
+_SLICE_MM = 0.5       # mm: a group thinner than this across its own plane lies in one image plane
 
 
 def false_echoes(points: np.ndarray, planes: LocalPlanes, view: np.ndarray | None, *, depth: float,
@@ -57,7 +60,8 @@ def false_echoes(points: np.ndarray, planes: LocalPlanes, view: np.ndarray | Non
     (:func:`~ultraboneudf.geometry.surface_fit.fit_local_planes`): those in front of a denser layer
     (``depth`` > 0; counted by ``votes`` columns, ``ratio``: how much denser) and, with ``fraction``
     > 0, the detached clusters left but for those holding a steep plane's points (a steep face
-    returns a few echoes apart from the rest of a small bone; only sweeps have steep planes).
+    returns a few echoes apart from the rest of a small bone; only sweeps have steep planes) and
+    those of at least the planes' median point count that continue the kept surface in its plane.
     ``view`` (N, 3): unit directions probe → point where known.
     The columns' radius and the least height in front are the planes' first radius and three
     quarters of it (the band of a bone's echoes is about that thick), representatives are spaced at
@@ -86,7 +90,8 @@ def false_echoes(points: np.ndarray, planes: LocalPlanes, view: np.ndarray | Non
                                      occluders=pts[strong])
     if fraction > 0:
         rows = np.flatnonzero(~out)
-        out[rows[small_components(pts[rows], radius, fraction, planes.steep[rows])]] = True
+        out[rows[small_components(pts[rows], radius, fraction, planes.steep[rows], planes.normal[rows],
+                                  int(np.median(planes.count)))]] = True
     return out
 
 
@@ -163,10 +168,12 @@ def in_front_of_denser_layer(points: np.ndarray, reps: np.ndarray, front: np.nda
     return votes
 
 
-def small_components(points: np.ndarray, link: float, fraction: float, spare: np.ndarray | None = None
-                     ) -> np.ndarray:
+def small_components(points: np.ndarray, link: float, fraction: float, spare: np.ndarray | None = None,
+                     normals: np.ndarray | None = None, min_points: int = 3) -> np.ndarray:
     """(N,) bool: points of the groups (linked by gaps under ``link``) with fewer points than
-    ``fraction`` of the largest group, but for the groups holding a point ``spare`` (N,) bool marks."""
+    ``fraction`` of the largest group, but for the groups holding a point ``spare`` (N,) bool marks
+    and, given the points' plane ``normals`` (N, 3), those of ``min_points`` or more that continue
+    the kept surface in its own plane (:func:`along_the_surface`)."""
     if len(points) == 0 or fraction <= 0:
         return np.zeros(len(points), dtype=bool)
     pairs = kd_tree(points).query_pairs(link, output_type="ndarray")
@@ -176,7 +183,47 @@ def small_components(points: np.ndarray, link: float, fraction: float, spare: np
     small = size < fraction * size.max()
     if spare is not None:
         small &= np.bincount(label, weights=spare.astype(np.float64), minlength=len(size)) == 0
+    if normals is not None and small.any() and not small.all():
+        small &= ~along_the_surface(points, label, small, normals, _SURFACE_REACH * link, min_points)
     return small[label]
+
+
+def along_the_surface(points: np.ndarray, label: np.ndarray, candidate: np.ndarray, normals: np.ndarray,
+                      reach: float, min_points: int = 3) -> np.ndarray:
+    """(G,) bool over the groups ``label`` (N,) numbers: the ``candidate`` groups of ``min_points``
+    or more that lie in the plane of the surface the other groups form, where it is nearest to them.
+
+    A piece of bone seen apart from the rest (another pass of the sweep, past a gap in the coverage)
+    continues the bone's surface, while a cluster of echoes floating in the soft tissue lies off it,
+    along its normal. A group is judged at the nearest point of the rest: both the median elevation
+    of its points over that point's own plane (``normals`` (N, 3)) and the elevation of its centroid
+    over the plane of the rest within ``reach`` of that point must stay under ``_ALONG_DEG``. A
+    group that lies in one plane (thinner than ``_SLICE_MM`` across it) is one frame's curve, which
+    no other frame confirms: it is not judged (a sweep's slices of a neighbouring bone or of soft
+    tissue lie so), nor is a group of fewer points than a local plane holds (``min_points``: a few
+    echoes' elevation says little)."""
+    out = np.zeros(len(candidate), dtype=bool)
+    rest = np.flatnonzero(~candidate[label])
+    tree = kd_tree(points[rest])
+    limit = np.sin(np.radians(_ALONG_DEG))
+    for g in np.flatnonzero(candidate & (np.bincount(label, minlength=len(candidate)) >= max(min_points, 3))):
+        own = points[label == g]
+        if np.sqrt(max(np.linalg.eigvalsh(np.cov(own.T))[0], 0.0)) < _SLICE_MM:
+            continue  # one image plane's curve: one frame's detection, not a piece of surface
+        dist, near = tree.query(own, workers=-1)
+        anchor = rest[near]
+        offset = own - points[anchor]
+        length = np.maximum(np.linalg.norm(offset, axis=1), 1e-12)
+        rise = np.abs(np.einsum("ij,ij->i", offset, normals[anchor])) / length
+        if np.median(rise) >= limit:
+            continue
+        base = points[rest[near[np.argmin(dist)]]]
+        local = points[rest[tree.query_ball_point(base, reach)]]
+        centre = local.mean(axis=0)
+        _, vectors = np.linalg.eigh((local - centre).T @ (local - centre))
+        towards = own.mean(axis=0) - centre
+        out[g] = abs(towards @ vectors[:, 0]) < limit * max(float(np.linalg.norm(towards)), 1e-12)
+    return out
 
 
 def _pairs(neighbours) -> tuple[np.ndarray, np.ndarray]:
