@@ -4,8 +4,8 @@ Inputs (paths given on the command line, mm, each in the frame of its CT):
 
 * ``--cloud NAME=POINTS,CT`` (repeatable), or ``--clouds DIR`` for every ``*_us.npy`` beside its
   ``*_ct.stl``: a compounded ultrasound cloud (any file ``reconstruct`` reads) and the CT bone mesh.
-  UltraBonesHip's early-access clouds (specimen 00: left femur, pelvis; Wu et al.,
-  luohwu/NeuralBoneReg-implementation) are laid out so.
+  UltraBonesHip's seven early-access clouds (five femurs and two pelves of three cadavers; Wu et
+  al., luohwu/NeuralBoneReg-implementation at commit 57d07b0, docs/real_data.md) are laid out so.
 * ``--sweep DIR --ct MESH``: a tracked sweep and the CT of one bone it images, e.g. the whole sweep of
   the public UltraBones100k repository (``CT-US bone alignment optimization/record_folder``: its
   ``UltrasoundImages`` as ``frames/``, ``sweep_initial.csv`` as ``poses.csv`` and the calibration of
