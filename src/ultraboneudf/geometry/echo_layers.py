@@ -27,7 +27,9 @@ bone's side:
    with fewer points than ``fraction`` of the largest are dropped (clusters of echoes floating in
    the soft tissue, which no column reached), unless they hold echoes of a steep face (a sweep's
    steep planes, :func:`~ultraboneudf.geometry.surface_fit.fit_local_planes`): the few echoes a
-   small bone's steep sides return lie apart from the rest.
+   small bone's steep sides return lie apart from the rest; or unless they continue the kept
+   surface in its own plane (:func:`along_the_surface`): bone seen apart from the rest, past a gap
+   in the coverage.
 
 Lengths are in the cloud's unit (the pipeline works in mm, before normalisation).
 """
