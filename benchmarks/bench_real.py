@@ -25,6 +25,14 @@ mesh within ``--near-mm`` (10 mm) of it, and ``far_mm2`` is the area beyond (the
 anything invented there). The row ``points`` scores the input points themselves as if they were the
 surface. ``time_s`` is end to end.
 
+``--register`` scores every mesh a second time (``reg_cd_mm``, ``reg_hd95_mm``, ``reg_on_bone``,
+``reg_covered``) against the CT moved onto the input points by ``ultraboneudf.register`` (rigid,
+started from the CT's own pose; ``reg_turn_deg`` and ``reg_shift_mm`` on the ``points`` row: its
+rotation and the mean distance it moves the CT's vertices). That motion takes out what moves the
+whole cloud against its CT (an error of the data's CT registration, and an offset of the segmented
+band seen mostly from one side), which no reconstruction from the points can: what is left is the
+reconstruction's.
+
 The input points are described against the CT too (``--describe``, also printed with every run):
 their distance to the bone in bands, and the groups that the points more than 2 mm off it form
 (linked across 2 mm gaps): how many, how large, their shape (``line``, ``sheet``, ``blob`` by the
@@ -62,12 +70,15 @@ class Truth:
     """A CT bone mesh prepared for scoring one input: dense samples with their outward normals, and
     the pseudo ground truth of the input points."""
 
-    def __init__(self, ct_path: Path, points: np.ndarray, samples: int = CT_SAMPLES):
+    def __init__(self, ct_path: Path, points: np.ndarray, samples: int = CT_SAMPLES,
+                 transform: np.ndarray | None = None):
         from ultraboneudf import load_mesh
         from ultraboneudf.evaluation.sampling import sample_surface
         from ultraboneudf.geometry.neighbors import kd_tree
 
         self.mesh = load_mesh(ct_path)
+        if transform is not None:  # (4, 4) CT → the points' frame
+            self.mesh.apply_transform(transform)
         self.samples = sample_surface(self.mesh, samples, seed=1)
         self.tree = kd_tree(self.samples)
         self._vertices = kd_tree(np.asarray(self.mesh.vertices))
@@ -179,9 +190,9 @@ def sweep_cloud(sweep: Path, step: int, cache: Path, seed_log) -> Path:
 
 
 def run(method: str, preset: str, points: np.ndarray, truth: Truth, args: argparse.Namespace, probe=None,
-        frames=None, near: float | None = None):
-    """One reconstruction and its scores (``near``: :meth:`Truth.score`); returns the row and the
-    mesh (``None`` on failure)."""
+        frames=None, near: float | None = None, registered: Truth | None = None):
+    """One reconstruction and its scores (``near``: :meth:`Truth.score`; ``registered``:
+    :func:`mesh_scores`); returns the row and the mesh (``None`` on failure)."""
     import ultraboneudf
     from ultraboneudf.errors import InputError
 
@@ -196,18 +207,45 @@ def run(method: str, preset: str, points: np.ndarray, truth: Truth, args: argpar
     row = {"time_s": round(time.perf_counter() - t0, 1), "points": len(points)}
     if rec.mesh is None:
         return {**row, "failed": True}, None
-    row.update(mesh_scores(truth, rec.mesh, args.samples, near))
+    row.update(mesh_scores(truth, rec.mesh, args.samples, near, registered))
     return row, rec.mesh
 
 
-def mesh_scores(truth: Truth, mesh, samples: int, near: float | None) -> dict:
+def mesh_scores(truth: Truth, mesh, samples: int, near: float | None, registered: Truth | None = None) -> dict:
     """:meth:`Truth.score` of ``mesh`` over ``samples`` area samples, and its ``pieces``: the parts
-    connected across edges (floating sheets of false echoes each count)."""
+    connected across edges (floating sheets of false echoes each count); with ``registered`` (the CT
+    registered to the points, ``--register``), also its ``reg_`` scores."""
     from ultraboneudf.evaluation.sampling import sample_surface
 
-    out = truth.score(sample_surface(mesh, samples, seed=0), float(mesh.area), near)
+    surface = sample_surface(mesh, samples, seed=0)
+    out = truth.score(surface, float(mesh.area), near)
     out["pieces"] = len(mesh.split(only_watertight=False))
+    if registered is not None:
+        out.update(registered_scores(registered.score(surface, float(mesh.area), near)))
     return out
+
+
+REGISTERED = ("cd_mm", "hd95_mm", "on_bone", "covered")
+
+
+def registered_scores(score: dict) -> dict:
+    """The scores against the registered CT that the rows carry, ``reg_``-prefixed."""
+    return {f"reg_{k}": score[k] for k in REGISTERED}
+
+
+def registered_truth(ct: Path, points: np.ndarray, seed: int) -> tuple[Truth, dict]:
+    """The CT moved onto ``points`` by :func:`ultraboneudf.register` (rigid, started from the CT's
+    own pose), and the motion: its rotation (degrees) and the mean distance (mm) it moves the CT's
+    vertices."""
+    from ultraboneudf import load_mesh, register
+
+    mesh = load_mesh(ct)
+    transform = register(mesh, points, init=np.eye(4), seed=seed).transform
+    moved = mesh.vertices @ transform[:3, :3].T + transform[:3, 3]
+    turn = np.degrees(np.arccos(np.clip((np.trace(transform[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    motion = {"reg_turn_deg": round(float(turn), 2),
+              "reg_shift_mm": round(float(np.linalg.norm(moved - mesh.vertices, axis=1).mean()), 2)}
+    return Truth(ct, points, transform=transform), motion
 
 
 def main() -> None:
@@ -229,6 +267,8 @@ def main() -> None:
     p.add_argument("--samples", type=int, default=300_000, help="area samples per mesh")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--describe", action="store_true", help="only describe the inputs against their CT")
+    p.add_argument("--register", action="store_true", help="also score against the CT registered to each "
+                   "input's points (reg_ columns)")
     p.add_argument("--rescore", action="store_true", help="score the rows already in --json again from their "
                    "meshes in --meshes (after a change of the scoring), rewriting --json")
     p.add_argument("--cache", type=Path, default=Path("bench_out/real_inputs"))
@@ -263,7 +303,7 @@ def main() -> None:
     done = []
     if args.json and args.json.exists():
         done = [json.loads(line) for line in args.json.read_text().splitlines() if line.strip()]
-    rows, truths, rescored = [], {}, False
+    rows, truths, registered, rescored = [], {}, {}, False
     for case, variant, points, probe, frames, ct, near in inputs:
         if case not in truths:
             truths[case] = Truth(ct, points)
@@ -272,6 +312,9 @@ def main() -> None:
             score = truths[case].score(points, near=near)
             rows.append({"case": case, "variant": "input", "method": "points", **score,
                          "points": len(points), "describe": info})
+            if args.register:
+                registered[case], motion = registered_truth(ct, points, args.seed)
+                rows[-1].update(motion, **registered_scores(registered[case].score(points, near=near)))
         if args.describe:
             continue
         truth, meshes = truths[case], {}
@@ -288,11 +331,11 @@ def main() -> None:
 
                     meshes[method] = load_mesh(stored)
                     if args.rescore:
-                        old.update(mesh_scores(truth, meshes[method], args.samples, near))
+                        old.update(mesh_scores(truth, meshes[method], args.samples, near, registered.get(case)))
                         rescored = True
                 rows.append(old)
                 continue
-            row, mesh = run(name, preset, points, truth, args, probe, frames, near)
+            row, mesh = run(name, preset, points, truth, args, probe, frames, near, registered.get(case))
             rows.append({**key, **row})
             log(json.dumps(rows[-1]))
             if args.json:
@@ -336,10 +379,11 @@ def mesh_name(case: str, variant: str, method: str, preset: str) -> str:
 
 
 def print_table(rows: list[dict]) -> None:
-    print("| " + " | ".join(COLUMNS) + " |")
-    print("|" + "---|" * len(COLUMNS))
+    columns = COLUMNS + [f"reg_{k}" for k in REGISTERED if any(f"reg_{k}" in r for r in rows)]
+    print("| " + " | ".join(columns) + " |")
+    print("|" + "---|" * len(columns))
     for r in rows:
-        cells = ["" if r.get(c) is None else str(r.get(c)) for c in COLUMNS]
+        cells = ["" if r.get(c) is None else str(r.get(c)) for c in columns]
         if r.get("failed"):
             cells[4] = "no surface"
         if r.get("error"):
