@@ -379,7 +379,8 @@ def mesh_name(case: str, variant: str, method: str, preset: str) -> str:
 
 
 def print_table(rows: list[dict]) -> None:
-    columns = COLUMNS + [f"reg_{k}" for k in REGISTERED if any(f"reg_{k}" in r for r in rows)]
+    extra = [f"reg_{k}" for k in REGISTERED] + ["reg_turn_deg", "reg_shift_mm"]
+    columns = COLUMNS + [c for c in extra if any(c in r for r in rows)]
     print("| " + " | ".join(columns) + " |")
     print("|" + "---|" * len(columns))
     for r in rows:
