@@ -70,15 +70,15 @@ class Truth:
     """A CT bone mesh prepared for scoring one input: dense samples with their outward normals, and
     the pseudo ground truth of the input points."""
 
-    def __init__(self, ct_path: Path, points: np.ndarray, samples: int = CT_SAMPLES,
-                 transform: np.ndarray | None = None):
+    def __init__(self, ct, points: np.ndarray, samples: int = CT_SAMPLES):
+        """``ct``: the CT mesh's file, or the mesh itself (mm, in the points' frame)."""
+        import trimesh
+
         from ultraboneudf import load_mesh
         from ultraboneudf.evaluation.sampling import sample_surface
         from ultraboneudf.geometry.neighbors import kd_tree
 
-        self.mesh = load_mesh(ct_path)
-        if transform is not None:  # (4, 4) CT → the points' frame
-            self.mesh.apply_transform(transform)
+        self.mesh = ct if isinstance(ct, trimesh.Trimesh) else load_mesh(ct)
         self.samples = sample_surface(self.mesh, samples, seed=1)
         self.tree = kd_tree(self.samples)
         self._vertices = kd_tree(np.asarray(self.mesh.vertices))
@@ -238,14 +238,14 @@ def registered_truth(ct: Path, points: np.ndarray, seed: int) -> tuple[Truth, di
     own pose), and the motion: its rotation (degrees) and the mean distance (mm) it moves the CT's
     vertices."""
     from ultraboneudf import load_mesh, register
+    from ultraboneudf.registration.rigid import rotation_angle_deg
 
     mesh = load_mesh(ct)
-    transform = register(mesh, points, init=np.eye(4), seed=seed).transform
-    moved = mesh.vertices @ transform[:3, :3].T + transform[:3, 3]
-    turn = np.degrees(np.arccos(np.clip((np.trace(transform[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-    motion = {"reg_turn_deg": round(float(turn), 2),
-              "reg_shift_mm": round(float(np.linalg.norm(moved - mesh.vertices, axis=1).mean()), 2)}
-    return Truth(ct, points, transform=transform), motion
+    reg = register(mesh, points, init=np.eye(4), seed=seed)
+    placed = reg.place(mesh)
+    motion = {"reg_turn_deg": round(float(rotation_angle_deg(reg.transform[:3, :3])), 2),
+              "reg_shift_mm": round(float(np.linalg.norm(placed.vertices - mesh.vertices, axis=1).mean()), 2)}
+    return Truth(placed, points), motion
 
 
 def main() -> None:
