@@ -245,6 +245,7 @@ def test_robust_preset_keeps_a_noisy_gappy_sweep_with_false_echoes_in_one_layer(
     n_echoes = 0.03 * len(points)
     assert 0.5 * n_echoes < rec.counts["outliers_removed"] < 3 * n_echoes
     assert rec.counts["extract_depth"] == 6          # 80 mm domain: leaves ≥ 1 mm (1.25 mm)
+    assert rec.counts["extract_margin"] >= rec.config.extract.margin
     res = evaluate(rec.mesh, patch_mesh(), samples=200_000, seed=0)
     assert res.cd_mm < 0.3 and res.hd95_mm < 1.5, res
     centre = rec.mesh.triangles_center
@@ -335,3 +336,24 @@ def test_configure_gives_the_complete_configuration_reconstruct_takes_as_it_is(s
     assert configure("robust", "capudf", config=capudf, overrides={"train.iters": 40}).train.iters == 40
     with pytest.raises(InputError, match="method funsr cannot checkpoint its training"):
         configure("fast", "funsr", checkpoint=True)
+
+
+def test_the_extract_margin_covers_how_far_above_zero_the_field_stays_on_its_points():
+    """Points on the plane z = 0.01 under the field |z| (the field stays 0.01 above zero on all of
+    them, as one trained on a thick sparse band does between its points): the margin rises to
+    ``data_margin`` × 0.01; on points where the field is zero it stays ``extract.margin``, and
+    ``data_margin`` = 0 or a method without a field leaves it as given."""
+    from ultraboneudf.config import ExtractConfig
+    from ultraboneudf.fields.analytic import PlaneUDF
+    from ultraboneudf.pipeline import resolve_margin
+
+    rng = np.random.default_rng(0)
+    on = np.c_[rng.uniform(-0.5, 0.5, (500, 2)), np.zeros(500)]
+    above = on + [0.0, 0.0, 0.01]
+    cfg = ExtractConfig(margin=0.002, data_margin=1.25)
+    field = PlaneUDF()
+    assert resolve_margin(cfg, field, above).margin == pytest.approx(0.0125)
+    assert resolve_margin(dataclasses.replace(cfg, data_margin=0.5), field, above).margin == pytest.approx(0.005)
+    assert resolve_margin(cfg, field, on).margin == 0.002
+    assert resolve_margin(dataclasses.replace(cfg, data_margin=0.0), field, above).margin == 0.002
+    assert resolve_margin(cfg, None, above).margin == 0.002

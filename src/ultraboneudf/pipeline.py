@@ -399,7 +399,7 @@ class FittedSurface:
     def _extract(self, cfg: ExtractConfig, clean: CleanConfig, grid: GridConfig, progress: Progress
                  ) -> tuple[trimesh.Trimesh | None, int, ExtractConfig]:
         """The mesh in mm, the faces the support trim removed and the extraction settings used."""
-        cfg = resolve_leaf_size(cfg, self.normalizer)
+        cfg = resolve_margin(resolve_leaf_size(cfg, self.normalizer), self.fitted.field, self.unit.points)
         if self.fitted.mesh is not None:
             unit_mesh = self.fitted.mesh
         elif self.fitted.field is not None:
@@ -452,6 +452,7 @@ def _finish(surface: FittedSurface, progress: Progress) -> Reconstruction:
     counts = {"input_points": unit.input_points, "voxelized_points": len(unit.points) + unit.outliers,
               "voxel_size_mm": unit.voxel_mm,
               "outliers_removed": unit.outliers, "frames": unit.frames, "extract_depth": extract_cfg.max_depth,
+              "extract_margin": extract_cfg.margin,
               **fitted.counts,
               "vertices": 0 if mesh is None else len(mesh.vertices),
               "faces": 0 if mesh is None else len(mesh.faces), "trimmed_faces": trimmed}
@@ -472,6 +473,19 @@ def resolve_leaf_size(cfg: ExtractConfig, normalizer: Normalizer) -> ExtractConf
     while depth > 1 and span_mm / 2 ** depth < cfg.min_leaf_mm:
         depth -= 1
     return dataclasses.replace(cfg, max_depth=depth)
+
+
+def resolve_margin(cfg: ExtractConfig, field: Field | None, points: np.ndarray) -> ExtractConfig:
+    """``cfg`` with ``margin`` raised to ``cfg.data_margin`` × the 90th percentile of the unit-space
+    ``field`` at the pre-processed ``points`` (N, 3; unit space), where that is larger
+    (``extract.data_margin``); unchanged when that is 0 or there is no field."""
+    if cfg.data_margin <= 0 or field is None or len(points) == 0:
+        return cfg
+    u = field.value(torch.as_tensor(points, dtype=torch.float64), chunk=cfg.batch).numpy()
+    return dataclasses.replace(cfg, margin=max(cfg.margin, cfg.data_margin * float(np.quantile(u, _DATA_QUANTILE))))
+
+
+_DATA_QUANTILE = 0.9  # most of the data, not the stray points the field was never meant to reach
 
 
 def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, normalizer: Normalizer,

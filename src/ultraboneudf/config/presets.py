@@ -96,8 +96,10 @@ def _robust() -> Config:
     away from the beam). ``L_OS`` on 256 surface points a
     step pins the zero level to the data where few frames saw the bone and the tangent phase alone
     leaves the field above zero there. Leaves are kept ≥ 0.75 mm, so a small bone is not meshed
-    finer than its data resolve, and the mesh's folds (faces meeting at more than 60°, where the QEF
-    vertices scatter across the noisy field's minimum) are smoothed out. The network is twice as
+    finer than its data resolve; the extractor's margin covers how far above zero the field stays on
+    its own points, so where a thick, sparse band keeps it above zero between them (a compounded
+    cloud's slices) the surface is still meshed; and the mesh's folds (faces meeting at more than 60°, where the QEF vertices scatter
+    across the noisy field's minimum) are smoothed out. The network is twice as
     wide as ``fast``'s (4 × 128): on these points it follows the denoised surface more closely, for
     1.6–1.8× the time (docs/robustness.md measures each part)."""
     cfg = _fast()
@@ -116,6 +118,7 @@ def _robust() -> Config:
     cfg.loss.lambda_os = 10.0
     cfg.loss.os_rows = 256
     cfg.extract.min_leaf_mm = 0.75
+    cfg.extract.data_margin = 1.25
     cfg.extract.trim_normal_mm = 1.0
     cfg.extract.trim_rim_mm = 0.5
     cfg.clean.unfold_deg = 60.0

@@ -261,6 +261,12 @@ class ExtractConfig(_Section):
     """Sub-lattice per leaf: ``(2^s + 1)³`` samples of the UDF and its gradient (§2.4)."""
     margin: float = 0.002
     """Subdivision margin μ (unit space): a cell is kept while ``u(centre) < half diagonal + μ`` (§2.3)."""
+    data_margin: float = 0.0
+    """μ at least this × how far above zero the field stays on its own data: the 90th percentile
+    of ``u`` at the pre-processed points; 0 = ``margin`` as given. A field trained on a thick,
+    sparse band of echoes keeps its minimum above zero between the points, and a fixed μ leaves the
+    surface there out; where the field reaches zero on its points ``margin`` stays. The margin used
+    is ``counts.extract_margin`` in the sidecar."""
     valid_threshold: float = 0.01
     """Projection-validity threshold τ_val (unit space): a sample counts only if the UDF at its
     projection ``x − u·ĝ`` is below this (§2.5)."""
