@@ -98,10 +98,10 @@ def _robust() -> Config:
     leaves the field above zero there. Leaves are kept ≥ 0.75 mm, so a small bone is not meshed
     finer than its data resolve; the extractor's margin covers how far above zero the field stays on
     its own points, so where a thick, sparse band keeps it above zero between them (a compounded
-    cloud's slices) the surface is still meshed; and the mesh's folds (faces meeting at more than 60°, where the QEF vertices scatter
-    across the noisy field's minimum) are smoothed out. The network is twice as
-    wide as ``fast``'s (4 × 128): on these points it follows the denoised surface more closely, for
-    1.6–1.8× the time (docs/robustness.md measures each part)."""
+    cloud's slices) the surface is still meshed; and the mesh's folds (faces meeting at more than
+    60°, where the QEF vertices scatter across the noisy field's minimum) are smoothed out. The
+    network is twice as wide as ``fast``'s (4 × 128): on these points it follows the denoised
+    surface more closely, for 1.6–1.8× the time (docs/robustness.md measures each part)."""
     cfg = _fast()
     cfg.model.hidden = (128, 128, 128, 128)
     cfg.data.max_voxels = 200_000
