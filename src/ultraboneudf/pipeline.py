@@ -482,7 +482,8 @@ def resolve_margin(cfg: ExtractConfig, field: Field | None, points: np.ndarray) 
     if cfg.data_margin <= 0 or field is None or len(points) == 0:
         return cfg
     u = field.value(torch.as_tensor(points, dtype=torch.float64), chunk=cfg.batch).numpy()
-    return dataclasses.replace(cfg, margin=max(cfg.margin, cfg.data_margin * float(np.quantile(u, _DATA_QUANTILE))))
+    above = float(np.quantile(u, _DATA_QUANTILE))
+    return dataclasses.replace(cfg, margin=max(cfg.margin, cfg.data_margin * above))
 
 
 _DATA_QUANTILE = 0.9  # most of the data, not the stray points the field was never meant to reach
