@@ -233,14 +233,13 @@ def registered_scores(score: dict) -> dict:
     return {f"reg_{k}": score[k] for k in REGISTERED}
 
 
-def registered_truth(ct: Path, points: np.ndarray, seed: int) -> tuple[Truth, dict]:
-    """The CT moved onto ``points`` by :func:`ultraboneudf.register` (rigid, started from the CT's
-    own pose), and the motion: its rotation (degrees) and the mean distance (mm) it moves the CT's
-    vertices."""
-    from ultraboneudf import load_mesh, register
+def registered_truth(mesh, points: np.ndarray, seed: int) -> tuple[Truth, dict]:
+    """The CT ``mesh`` (mm, e.g. :attr:`Truth.mesh`) moved onto ``points`` by
+    :func:`ultraboneudf.register` (rigid, started from the CT's own pose), and the motion: its
+    rotation (degrees) and the mean distance (mm) it moves the CT's vertices."""
+    from ultraboneudf import register
     from ultraboneudf.registration.rigid import rotation_angle_deg
 
-    mesh = load_mesh(ct)
     reg = register(mesh, points, init=np.eye(4), seed=seed)
     placed = reg.place(mesh)
     motion = {"reg_turn_deg": round(float(rotation_angle_deg(reg.transform[:3, :3])), 2),
@@ -313,7 +312,7 @@ def main() -> None:
             rows.append({"case": case, "variant": "input", "method": "points", **score,
                          "points": len(points), "describe": info})
             if args.register:
-                registered[case], motion = registered_truth(ct, points, args.seed)
+                registered[case], motion = registered_truth(truths[case].mesh, points, args.seed)
                 rows[-1].update(motion, **registered_scores(registered[case].score(points, near=near)))
         if args.describe:
             continue

@@ -42,8 +42,9 @@ def _misregister(x: np.ndarray) -> np.ndarray:
 def truths(bench_real, misregistered):
     """The CT as given and as registered to the points, with the registration's motion."""
     path, points, _ = misregistered
-    registered, motion = bench_real.registered_truth(path, points, seed=0)
-    return bench_real.Truth(path, points, samples=200_000), registered, motion
+    truth = bench_real.Truth(path, points, samples=200_000)
+    registered, motion = bench_real.registered_truth(truth.mesh, points, seed=0)
+    return truth, registered, motion
 
 
 def test_the_registered_ct_takes_out_the_frames_error(misregistered, truths):
