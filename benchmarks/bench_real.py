@@ -36,7 +36,13 @@ reconstruction's.
 The input points are described against the CT too (``--describe``, also printed with every run):
 their distance to the bone in bands, and the groups that the points more than 2 mm off it form
 (linked across 2 mm gaps): how many, how large, their shape (``line``, ``sheet``, ``blob`` by the
-spread of their principal axes) and their side (in front of the bone, outside the CT, or behind it).
+spread of their principal axes) and their side (in front of the bone, outside the CT, or behind it);
+and, for the points within 5 mm of the bone, their median signed distance to it by the angle between
+the beam and the bone's normal (``by_incidence``, 15° bins): how far out of the bone an oblique face's
+echoes lie. A sweep's beams are known; a compounded cloud that keeps its frames' points together
+(consecutive points in one plane, as the UltraBonesHip clouds do) has its beams estimated, each
+frame's as the second principal axis of its points within its plane (on the fibula sweep, where the
+true beams are known, a median 16° off them); a cloud in another order has no such row.
 
     python benchmarks/bench_real.py --clouds REAL_CLOUDS_DIR --methods ultraboneudf,ultraboneudf@fast,poisson
     python benchmarks/bench_real.py --sweep SWEEP_DIR --ct Fibula.stl --frame-steps 3,10
@@ -62,6 +68,8 @@ PSEUDO_GT_MM = 2.0
 ON_BONE_MM = 2.0
 CT_SAMPLES = 2_000_000
 GROUP_LINK_MM = 2.0
+FRAME_PLANE_MM = 0.02   # consecutive points this close to one plane are one frame's
+FRAME_MIN_POINTS = 5
 COLUMNS = ["case", "variant", "method", "preset", "cd_mm", "hd95_mm", "on_bone", "covered", "pieces", "off_mm2",
            "far_mm2", "time_s"]
 
@@ -87,13 +95,15 @@ class Truth:
         self.pgt = self.samples[d <= PSEUDO_GT_MM]
         self.pgt_tree = kd_tree(self.pgt)
 
-    def signed(self, points: np.ndarray) -> np.ndarray:
+    def signed(self, points: np.ndarray, with_normals: bool = False):
         """Distance (N,) of each point to the CT surface, positive outside the bone (in front of it;
-        the side from the nearest vertex's normal)."""
+        the side from the nearest vertex's normal); with ``with_normals`` also that normal (N, 3)."""
         d = self.tree.query(points, k=1, workers=-1)[0]
         _, v = self._vertices.query(points, k=1, workers=-1)
-        side = np.einsum("ij,ij->i", points - self.mesh.vertices[v], self.mesh.vertex_normals[v])
-        return np.where(side < 0, -d, d)
+        normals = self.mesh.vertex_normals[v]
+        side = np.einsum("ij,ij->i", points - self.mesh.vertices[v], normals)
+        signed = np.where(side < 0, -d, d)
+        return (signed, normals) if with_normals else signed
 
     def score(self, surface: np.ndarray, area: float | None = None, near: float | None = None) -> dict:
         """The scores of the module docstring for area samples (or points) ``surface`` of a mesh of
@@ -116,14 +126,70 @@ class Truth:
         return out
 
 
-def describe(points: np.ndarray, truth: Truth) -> dict:
-    """The input points against the CT: distance bands and the off-bone groups (module docstring)."""
+def frames_in_order(points: np.ndarray) -> np.ndarray:
+    """(N,) the frame of each of ``points`` (N, 3) for a cloud that keeps each frame's points
+    together: runs of at least ``FRAME_MIN_POINTS`` consecutive points within ``FRAME_PLANE_MM`` of
+    one plane; -1 for points in no such run."""
+    p = np.asarray(points, dtype=np.float64)
+    label = np.full(len(p), -1)
+    start, frame = 0, 0
+    while start < len(p) - 3:
+        end = start + 3
+        centre = p[start:end].mean(axis=0)
+        _, spread, axes = np.linalg.svd(p[start:end] - centre)
+        if spread[1] < 1e-3:  # three points on a line fix no plane
+            start += 1
+            continue
+        normal = axes[2]
+        while end < len(p) and abs((p[end] - centre) @ normal) < FRAME_PLANE_MM:
+            end += 1
+            if (end - start) & (end - start - 1) == 0:  # refit at powers of two: the plane of the run
+                centre = p[start:end].mean(axis=0)
+                normal = np.linalg.svd(p[start:end] - centre)[2][2]
+        if end - start >= FRAME_MIN_POINTS:
+            label[start:end] = frame
+            frame, start = frame + 1, end
+        else:
+            start += 1
+    return label
+
+
+def frame_beams(points: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """(N, 3) each point's beam as estimated from its frame (``label`` from :func:`frames_in_order`):
+    the second principal axis of the frame's points, within its plane across the bone's curve; zero
+    rows for points in no frame. Unsigned."""
+    beams = np.zeros((len(points), 3))
+    for f in np.unique(label[label >= 0]):
+        rows = np.flatnonzero(label == f)
+        q = points[rows]
+        beams[rows] = np.linalg.svd(q - q.mean(axis=0), full_matrices=False)[2][1]
+    return beams
+
+
+def by_incidence(signed: np.ndarray, normals: np.ndarray, beams: np.ndarray) -> dict:
+    """The points within 5 mm of the bone, binned by the angle between their beam (N, 3, unsigned;
+    zero rows skipped) and the bone's normal at their nearest point (N, 3): per 15° bin, how many
+    and their median signed distance (mm, positive out of the bone)."""
+    has = np.any(beams != 0, axis=1) & (np.abs(signed) <= 5.0)
+    cos = np.abs(np.einsum("ij,ij->i", normals[has], beams[has])) / np.linalg.norm(beams[has], axis=1)
+    angle = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+    out = {}
+    for lo in range(0, 90, 15):
+        m = (angle >= lo) & (angle < lo + 15)
+        if m.any():
+            out[f"{lo}-{lo + 15}"] = {"points": int(m.sum()), "median_mm": round(float(np.median(signed[has][m])), 2)}
+    return out
+
+
+def describe(points: np.ndarray, truth: Truth, probe: np.ndarray | None = None) -> dict:
+    """The input points against the CT: distance bands, the off-bone groups and the offset by the
+    beam's incidence (module docstring); ``probe`` (N, 3): each point's scan-line origin, if known."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     from ultraboneudf.geometry.neighbors import kd_tree
 
-    s = truth.signed(points)
+    s, normals = truth.signed(points, with_normals=True)
     d = np.abs(s)
     out = {"points": len(points), "median_mm": round(float(np.median(d)), 2),
            "band": {k: round(float(np.mean(m)), 3) for k, m in
@@ -145,6 +211,15 @@ def describe(points: np.ndarray, truth: Truth) -> dict:
         out["off_groups"] = {"count": int(len(size)), "size_median": float(np.median(size)),
                              "size_max": int(size.max()), "by_shape": shapes,
                              "points_by_shape": {k: round(v / len(off), 3) for k, v in in_shape.items()}}
+    if probe is not None:
+        out["beams"], beams = "probe", points - probe
+    else:
+        label = frames_in_order(points)
+        out["beams"], beams = "frames", frame_beams(points, label)
+        if np.mean(label >= 0) < 0.5:  # not a cloud in frame order
+            out["beams"], beams = None, None
+    if beams is not None:
+        out["by_incidence"] = by_incidence(s, normals, beams)
     return out
 
 
@@ -306,7 +381,7 @@ def main() -> None:
     for case, variant, points, probe, frames, ct, near in inputs:
         if case not in truths:
             truths[case] = Truth(ct, points)
-            info = describe(points, truths[case])
+            info = describe(points, truths[case], probe)
             log(f"{case}: {json.dumps(info)}")
             score = truths[case].score(points, near=near)
             rows.append({"case": case, "variant": "input", "method": "points", **score,

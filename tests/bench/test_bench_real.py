@@ -68,3 +68,49 @@ def test_a_mesh_row_carries_both_scores(bench_real, misregistered, truths):
     assert row["reg_cd_mm"] < 0.2 < row["cd_mm"]  # 0.2: the spacing of the CT's samples
     assert row["reg_covered"] == row["reg_on_bone"] == 1.0
     assert {f"reg_{k}" for k in bench_real.REGISTERED} <= set(row)
+
+
+def _slices(rng, count=12, per=60, radius=12.0):
+    """A cylinder's upper half (axis z, radius mm) imaged from above in ``count`` planes z = const,
+    each frame's points together and in random order, as a compounded cloud keeps them."""
+    frames = []
+    for z in np.linspace(-20.0, 20.0, count):
+        phi = rng.uniform(np.radians(10), np.radians(170), per)  # the arc a probe above sees
+        frames.append(np.column_stack([radius * np.cos(phi), radius * np.sin(phi), np.full(per, z)]))
+    return frames
+
+
+def test_frames_are_found_from_the_points_order(bench_real):
+    frames = _slices(np.random.default_rng(0))
+    label = bench_real.frames_in_order(np.concatenate(frames))
+    assert (label >= 0).mean() > 0.98
+    assert len(np.unique(label[label >= 0])) == len(frames)
+    shuffled = np.concatenate(frames)[np.random.default_rng(1).permutation(sum(map(len, frames)))]
+    assert (bench_real.frames_in_order(shuffled) >= 0).mean() < 0.1  # no frames in another order
+
+
+def test_oblique_faces_offset_by_incidence(bench_real, tmp_path):
+    """Points pushed out of a cylinder by 2 × (1 − cos incidence): the by-incidence medians follow,
+    with the beam known (straight down) and estimated from the frames."""
+    frames = _slices(np.random.default_rng(2), per=200)
+    points = np.concatenate(frames)
+    radial = points[:, :2] / np.linalg.norm(points[:, :2], axis=1, keepdims=True)
+    cos = np.abs(radial[:, 1])                      # the beam is along −y
+    pushed = points.copy()
+    pushed[:, :2] += (2.0 * (1.0 - cos))[:, None] * radial
+    ct = trimesh.creation.cylinder(radius=12.0, height=60.0, sections=256).subdivide_to_size(1.0)
+    path = tmp_path / "cyl_ct.stl"
+    ct.export(path)
+    truth = bench_real.Truth(path, pushed, samples=400_000)
+    signed, normals = truth.signed(pushed, with_normals=True)
+    known = bench_real.by_incidence(signed, normals, np.tile([0.0, -1.0, 0.0], (len(pushed), 1)))
+    angle = np.degrees(np.arccos(cos))
+    assert len(known) == 6
+    for bin_, row in known.items():
+        lo = float(bin_.split("-")[0])
+        inside = (angle >= lo) & (angle < lo + 15)
+        assert row["points"] == pytest.approx(inside.sum(), rel=0.1)  # the CT is faceted
+        assert row["median_mm"] == pytest.approx(np.median(2.0 * (1.0 - cos[inside])), abs=0.1)
+    info = bench_real.describe(pushed, truth)
+    assert info["beams"] == "frames"
+    assert info["by_incidence"]["75-90"]["median_mm"] > 1.2 > 0.2 > info["by_incidence"]["0-15"]["median_mm"]

@@ -3,7 +3,8 @@
 Per frame (:func:`predicted_mask`): the true surface row per column with a per-frame bias and
 smooth boundary jitter (``pred_jitter_px``), ``pred_thickness_px`` thick; gaps
 (``pred_gap_fraction`` of the columns in runs of mean ``pred_gap_mean_mm``), weak echoes dropped
-above ``pred_max_incidence_deg``, and ``pred_fp_per_frame`` off-surface false positives (short
+above ``pred_max_incidence_deg``, oblique faces' boundary moved out of the bone (``pred_oblique_mm``,
+:func:`oblique_offsets`), and ``pred_fp_per_frame`` off-surface false positives (short
 segments on fascia or just below the bone, like reverberations). For the ``real`` noise level also
 an offset along the beam drifting along the sweep (:func:`boundary_offsets`) and false echoes that
 persist over neighbouring frames (:func:`add_clutter`: fascia sheets in front of the bone, streaks
@@ -26,6 +27,18 @@ def boundary_offsets(clutter: np.random.Generator, n: int, cfg: SimulationConfig
     if cfg.pred_offset_mm <= 0:
         return np.zeros(n)
     return cfg.pred_offset_mm / cfg.spacing_mm * smooth_noise(clutter, n, sigma=max(1.0, n / 6))[:, 0]
+
+
+def oblique_offsets(incidence: np.ndarray, cfg: SimulationConfig) -> np.ndarray:
+    """``(W,)`` px: how far up the beams (toward the probe) each scan line's predicted boundary lies,
+    for a face at ``incidence`` (W,) degrees moved ``pred_oblique_mm × (1 − cos incidence)`` out of
+    the bone along its normal. A plane moved by δ along its normal moves by δ / cos(incidence) along a
+    beam; the cosine is held at 0.25 or more, where a face this steep ends at the bone's silhouette
+    and its echo cannot lie farther out."""
+    if cfg.pred_oblique_mm <= 0:
+        return np.zeros(len(incidence))
+    cos = np.clip(np.cos(np.radians(np.nan_to_num(incidence, nan=0.0))), 0.25, 1.0)
+    return -cfg.pred_oblique_mm * (1.0 - cos) / cos / cfg.spacing_mm
 
 
 def _runs_mask(rng: np.random.Generator, n: int, fraction: float, mean_len: float) -> np.ndarray:
@@ -62,7 +75,8 @@ def predicted_mask(rows: np.ndarray, incidence: np.ndarray, fascia_y: np.ndarray
         false = ok & (rng.random(w) < cfg.pred_fp_fraction)
         jitter = jitter + np.where(false, rng.uniform(0.0, cfg.pred_fp_depth_mm / cfg.spacing_mm, w), 0.0)
     cols = np.flatnonzero(ok)
-    top = np.rint(rows[cols] + jitter[cols] + offset_px).astype(np.int64)
+    lift = oblique_offsets(inc, cfg)
+    top = np.rint(rows[cols] + jitter[cols] + offset_px + lift[cols]).astype(np.int64)
     for t in range(max(1, cfg.pred_thickness_px)):
         r = top + t
         good = (r >= 0) & (r < h)
