@@ -33,6 +33,10 @@ no input point comes near, e.g. steep faces whose echoes the segmentation droppe
     python benchmarks/bench_robust.py --levels hard --methods ultraboneudf --no-fragments
     python benchmarks/bench_robust.py --bones talus --levels hard --sim pred_max_incidence_deg=75
 
+``--describe`` only describes each input against the whole bone model (``bench_real.py
+--describe``: distance bands, off-bone groups, the offset by the beam's incidence, with the sweeps'
+own beams and the clouds' estimated from their frames).
+
 ``--sim`` changes one simulation option of the sweep levels (the last line: the segmentation keeps
 echoes up to the visible truth's 75° incidence instead of fading them from 60°).
 
@@ -50,6 +54,8 @@ truth (one column per method); ``--meshes`` keeps the meshes themselves (a row a
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import hashlib
 import json
 import sys
 import time
@@ -96,22 +102,23 @@ def make_input(bone: str, level: str, seed: int, cache: Path, align: bool = True
         from ultraboneudf.synth.visible_truth import truth_beam_spacing
 
         sim_cfg = config_with_noise(SWEEP_LEVELS[level], seed=seed, **(sim or {}))
-        # the truth's beam spacing names the cache, so a truth sampled by another rule is not reused
+        # the truth's beam spacing and every simulation setting name the cache, so a truth sampled
+        # by another rule, or a level whose settings have changed since, is not reused
         tag += f"_sweep_beam{truth_beam_spacing(mesh, sim_cfg):.4f}"
-        tag += "".join(f"_{k}{v}" for k, v in sorted((sim or {}).items())) + "_raw"
+        tag += "".join(f"_{k}{v}" for k, v in sorted((sim or {}).items()))
+        settings = json.dumps(dataclasses.asdict(sim_cfg), sort_keys=True, default=str)
+        tag += f"_cfg{hashlib.sha1(settings.encode()).hexdigest()[:8]}_raw"
     tag = cache / tag
     if not (tag / "points.npz").exists():
         tag.mkdir(parents=True, exist_ok=True)
         if level in SWEEP_LEVELS:
-            from dataclasses import asdict
-
             from ultraboneudf.sweep.front_end import SweepOptions, sweep_points
             from ultraboneudf.synth.simulator import simulate_sweep
 
             sim = simulate_sweep(mesh, sim_cfg)
             truth = sim.visible_mesh
             raw = SweepOptions(segment="masks", remove_outliers=False, drop_fragments=False, align_frames=False)
-            arrays = asdict(sweep_points(sim.sweep, raw).cloud)
+            arrays = dataclasses.asdict(sweep_points(sim.sweep, raw).cloud)
         else:
             truth = facing_surface(mesh, (0.0, 0.0, 1.0))
             points = trimesh.sample.sample_surface(truth, 100_000, seed=seed)[0]
@@ -261,6 +268,8 @@ def main() -> None:
     p.add_argument("--json", type=Path, help="append each row to this JSON-lines file; skip rows already in it")
     p.add_argument("--pictures", type=Path, help="write one distance-coloured PNG per input here")
     p.add_argument("--meshes", type=Path, help="write each mesh here (BONE_LEVEL_sSEED_METHOD.ply, mm)")
+    p.add_argument("--describe", action="store_true", help="only describe each input against the whole bone "
+                   "model, as bench_real.py --describe describes real inputs against their CT")
     args = p.parse_args()
     import torch
 
@@ -276,6 +285,14 @@ def main() -> None:
         for level in args.levels.split(","):
             points, probe, truth, frames = make_input(bone, level, args.seed, args.cache, not args.no_align,
                                                       sim, args.no_fragments)
+            if args.describe:
+                from bench_real import Truth, describe
+
+                from ultraboneudf import load_mesh
+
+                model = Truth(load_mesh(BONES / f"{bone}.ply"), points, samples=BONE_SAMPLES)
+                print(f"{bone} {level}: {json.dumps(describe(points, model, probe))}", flush=True)
+                continue
             meshes = {}
             for method in args.methods.split(","):
                 key = {"bone": bone, "level": level, "seed": args.seed, "method": method,
@@ -313,7 +330,8 @@ def main() -> None:
                 render_grid_png(args.pictures / f"{bone}_{level}.png", meshes,
                                 trimesh.sample.sample_surface(truth, 200_000, seed=0)[0], views=("front", "top"),
                                 ground_truth=truth)
-    print_table(rows)
+    if not args.describe:
+        print_table(rows)
 
 
 if __name__ == "__main__":
