@@ -215,9 +215,8 @@ def describe(points: np.ndarray, truth: Truth, probe: np.ndarray | None = None) 
         out["beams"], beams = "probe", points - probe
     else:
         label = frames_in_order(points)
-        out["beams"], beams = "frames", frame_beams(points, label)
-        if np.mean(label >= 0) < 0.5:  # not a cloud in frame order
-            out["beams"], beams = None, None
+        in_order = np.mean(label >= 0) >= 0.5  # a cloud that keeps its frames' points together
+        out["beams"], beams = ("frames", frame_beams(points, label)) if in_order else (None, None)
     if beams is not None:
         out["by_incidence"] = by_incidence(s, normals, beams)
     return out
