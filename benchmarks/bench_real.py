@@ -33,6 +33,11 @@ whole cloud against its CT (an error of the data's CT registration, and an offse
 band seen mostly from one side), which no reconstruction from the points can: what is left is the
 reconstruction's.
 
+``--pose principal`` runs every input (points, probe positions and CT together) turned into the
+cloud's principal axes about its centroid (the axes signed by the points' skew, right-handed): the
+same data in another frame, so the scores move only with what depends on the frame (grids,
+lattices, the column rule's representatives). Rows carry ``pose``; compare them with ``given``.
+
 The input points are described against the CT too (``--describe``, also printed with every run):
 their distance to the bone in bands, and the groups that the points more than 2 mm off it form
 (linked across 2 mm gaps): how many, how large, their shape (``line``, ``sheet``, ``blob`` by the
@@ -48,9 +53,10 @@ true beams are known, a median 16° off them); a cloud in another order has no s
     python benchmarks/bench_real.py --sweep SWEEP_DIR --ct Fibula.stl --frame-steps 3,10
     python benchmarks/bench_real.py --clouds DIR --json bench_out/real.jsonl --pictures bench_out/real_png
     python benchmarks/bench_real.py --clouds DIR --describe
+    python benchmarks/bench_real.py --clouds DIR --methods ultraboneudf --pose principal
 
 Rows are appended to ``--json`` as they finish and a rerun skips those already there (same case,
-method, preset, seed, iterations and ``--set``).
+method, preset, seed, iterations, ``--set`` and pose).
 """
 
 from __future__ import annotations
@@ -247,6 +253,31 @@ def clouds_from(args: argparse.Namespace) -> list[tuple[str, Path, Path]]:
     return out
 
 
+def principal_pose(points: np.ndarray) -> np.ndarray:
+    """The 4 × 4 rigid motion (mm) taking ``points`` (N, 3) into their principal axes: the centroid to
+    the origin, the axes by decreasing spread, the first two signed so that the points' skew along
+    them is positive and the third so that the frame stays right-handed. The same cloud turned
+    and moved gets the same image, but for axes of equal spread or no skew."""
+    centre = points.mean(axis=0)
+    q = points - centre
+    _, axes = np.linalg.eigh(q.T @ q)
+    axes = axes[:, ::-1].copy()
+    for k in range(2):
+        if np.mean((q @ axes[:, k]) ** 3) < 0:
+            axes[:, k] *= -1.0
+    if np.linalg.det(axes) < 0:
+        axes[:, 2] *= -1.0
+    motion = np.eye(4)
+    motion[:3, :3] = axes.T
+    motion[:3, 3] = -axes.T @ centre
+    return motion
+
+
+def posed(motion: np.ndarray, points: np.ndarray | None) -> np.ndarray | None:
+    """``points`` (N, 3) moved by the 4 × 4 ``motion``; ``None`` stays ``None``."""
+    return None if points is None else points @ motion[:3, :3].T + motion[:3, 3]
+
+
 def sweep_cloud(sweep: Path, step: int, cache: Path, seed_log) -> Path:
     """The sweep's points at every ``step``-th frame (the front end,
     :func:`ultraboneudf.sweep_points`, with its defaults), cached as PLY with each point's probe
@@ -340,6 +371,8 @@ def main() -> None:
     p.add_argument("--samples", type=int, default=300_000, help="area samples per mesh")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--describe", action="store_true", help="only describe the inputs against their CT")
+    p.add_argument("--pose", choices=("given", "principal"), default="given", help="run every input in its "
+                   "own frame, or turned with its CT into the cloud's principal axes")
     p.add_argument("--register", action="store_true", help="also score against the CT registered to each "
                    "input's points (reg_ columns)")
     p.add_argument("--rescore", action="store_true", help="score the rows already in --json again from their "
@@ -378,13 +411,19 @@ def main() -> None:
         done = [json.loads(line) for line in args.json.read_text().splitlines() if line.strip()]
     rows, truths, registered, rescored = [], {}, {}, False
     for case, variant, points, probe, frames, ct, near in inputs:
+        if args.pose == "principal":
+            from ultraboneudf import load_mesh
+
+            turn = principal_pose(points)
+            points, probe = posed(turn, points), posed(turn, probe)
+            ct = load_mesh(ct).apply_transform(turn)
         if case not in truths:
             truths[case] = Truth(ct, points)
             info = describe(points, truths[case], probe)
             log(f"{case}: {json.dumps(info)}")
             score = truths[case].score(points, near=near)
             rows.append({"case": case, "variant": "input", "method": "points", **score,
-                         "points": len(points), "describe": info})
+                         "points": len(points), "pose": args.pose, "describe": info})
             if args.register:
                 registered[case], motion = registered_truth(truths[case].mesh, points, args.seed)
                 rows[-1].update(motion, **registered_scores(registered[case].score(points, near=near)))
@@ -395,9 +434,10 @@ def main() -> None:
             name, _, preset = method.partition("@")
             preset = preset or args.preset
             key = {"case": case, "variant": variant, "method": name, "preset": preset, "seed": args.seed,
-                   "iters_override": args.iters, "set": args.set}
-            old = next((r for r in done if all(r.get(k) == v for k, v in key.items())), None)
-            stored = None if args.meshes is None else args.meshes / mesh_name(case, variant, name, preset)
+                   "iters_override": args.iters, "set": args.set, "pose": args.pose}
+            old = next((r for r in done if all(r.get(k, "given" if k == "pose" else None) == v
+                                               for k, v in key.items())), None)
+            stored = None if args.meshes is None else args.meshes / mesh_name(case, variant, name, preset, args.pose)
             if old is not None:
                 if stored is not None and stored.exists():  # for the pictures, or to score again
                     from ultraboneudf import load_mesh
@@ -424,7 +464,8 @@ def main() -> None:
 
             args.pictures.mkdir(parents=True, exist_ok=True)
             meshes = {"input points": points_as_mesh(points), **meshes}
-            render_grid_png(args.pictures / f"{case.replace('/', '_')}_{variant}.png", meshes,
+            suffix = "" if args.pose == "given" else f"_{args.pose}"
+            render_grid_png(args.pictures / f"{case.replace('/', '_')}_{variant}{suffix}.png", meshes,
                             truth.samples[:: max(1, len(truth.samples) // 300_000)], views=("front", "right", "top"),
                             ground_truth=truth.mesh)
     if rescored:  # the file again, every row as scored now
@@ -446,9 +487,10 @@ def points_as_mesh(points: np.ndarray, size: float = 0.6):
     return trimesh.Trimesh(vertices, np.arange(len(vertices)).reshape(-1, 3), process=False)
 
 
-def mesh_name(case: str, variant: str, method: str, preset: str) -> str:
-    """The file name of a row's mesh under ``--meshes``."""
-    return f"{case.replace('/', '_')}_{variant}_{method}_{preset}.ply"
+def mesh_name(case: str, variant: str, method: str, preset: str, pose: str = "given") -> str:
+    """The file name of a row's mesh under ``--meshes`` (a ``principal`` pose's mesh lies in that frame)."""
+    suffix = "" if pose == "given" else f"_{pose}"
+    return f"{case.replace('/', '_')}_{variant}_{method}_{preset}{suffix}.ply"
 
 
 def print_table(rows: list[dict]) -> None:

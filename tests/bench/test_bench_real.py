@@ -114,3 +114,24 @@ def test_oblique_faces_offset_by_incidence(bench_real, tmp_path):
     info = bench_real.describe(pushed, truth)
     assert info["beams"] == "frames"
     assert info["by_incidence"]["75-90"]["median_mm"] > 1.2 > 0.2 > info["by_incidence"]["0-15"]["median_mm"]
+
+
+def test_the_principal_pose_is_rigid_and_follows_the_cloud(bench_real):
+    """A cloud turned and moved anyhow is brought to the same principal-axes image, by a rigid motion
+    that keeps every distance (so the CT's scores of the points do not change)."""
+    rng = np.random.default_rng(5)
+    # a skewed, anisotropic cloud: a quarter of an ellipsoid's surface and a cluster off one side
+    shell = rng.normal(size=(4000, 3))
+    shell = shell / np.linalg.norm(shell, axis=1, keepdims=True) * [40.0, 20.0, 8.0]
+    cloud = np.vstack([shell[(shell[:, 0] > -10) & (shell[:, 1] > -5)], rng.normal([30, 15, 0], 2.0, (300, 3))])
+    turned = Rotation.from_euler("zyx", [110, -48, 17], degrees=True).apply(cloud) + [300.0, -20.0, 1500.0]
+    a, b = bench_real.principal_pose(cloud), bench_real.principal_pose(turned)
+    for m in (a, b):
+        assert np.allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-9)
+        assert np.linalg.det(m[:3, :3]) == pytest.approx(1.0)
+    image_a, image_b = bench_real.posed(a, cloud), bench_real.posed(b, turned)
+    np.testing.assert_allclose(image_a, image_b, atol=1e-6)
+    np.testing.assert_allclose(image_a.mean(axis=0), 0.0, atol=1e-9)
+    spread = image_a.std(axis=0)
+    assert spread[0] > spread[1] > spread[2]
+    assert bench_real.posed(a, None) is None
