@@ -117,10 +117,10 @@ def test_oblique_faces_offset_by_incidence(bench_real, tmp_path):
 
 
 def test_the_principal_pose_is_rigid_and_follows_the_cloud(bench_real):
-    """A cloud turned and moved anyhow is brought to the same principal-axes image, by a rigid motion
-    that keeps every distance (so the CT's scores of the points do not change)."""
+    """A cloud turned and moved anyhow is brought to the same principal-axes image, by a rigid
+    motion."""
     rng = np.random.default_rng(5)
-    # a skewed, anisotropic cloud: a quarter of an ellipsoid's surface and a cluster off one side
+    # a skewed, anisotropic cloud: part of an ellipsoid's surface and a cluster off one side
     shell = rng.normal(size=(4000, 3))
     shell = shell / np.linalg.norm(shell, axis=1, keepdims=True) * [40.0, 20.0, 8.0]
     cloud = np.vstack([shell[(shell[:, 0] > -10) & (shell[:, 1] > -5)], rng.normal([30, 15, 0], 2.0, (300, 3))])
