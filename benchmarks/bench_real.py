@@ -273,11 +273,6 @@ def principal_pose(points: np.ndarray) -> np.ndarray:
     return motion
 
 
-def posed(motion: np.ndarray, points: np.ndarray | None) -> np.ndarray | None:
-    """``points`` (N, 3) moved by the 4 × 4 ``motion``; ``None`` stays ``None``."""
-    return None if points is None else points @ motion[:3, :3].T + motion[:3, 3]
-
-
 def sweep_cloud(sweep: Path, step: int, cache: Path, seed_log) -> Path:
     """The sweep's points at every ``step``-th frame (the front end,
     :func:`ultraboneudf.sweep_points`, with its defaults), cached as PLY with each point's probe
@@ -412,12 +407,16 @@ def main() -> None:
     rows, truths, registered, rescored = [], {}, {}, False
     for case, variant, points, probe, frames, ct, near in inputs:
         if args.pose == "principal":
-            from ultraboneudf import load_mesh
+            from trimesh.transformations import transform_points
 
             turn = principal_pose(points)
-            points, probe = posed(turn, points), posed(turn, probe)
-            ct = load_mesh(ct).apply_transform(turn)
+            points = transform_points(points, turn)
+            probe = None if probe is None else transform_points(probe, turn)
         if case not in truths:
+            if args.pose == "principal":
+                from ultraboneudf import load_mesh
+
+                ct = load_mesh(ct).apply_transform(turn)
             truths[case] = Truth(ct, points)
             info = describe(points, truths[case], probe)
             log(f"{case}: {json.dumps(info)}")
