@@ -6,6 +6,8 @@ Inputs (paths given on the command line, mm, each in the frame of its CT):
   ``*_ct.stl``: a compounded ultrasound cloud (any file ``reconstruct`` reads) and the CT bone mesh.
   UltraBonesHip's seven early-access clouds (five femurs and two pelves of three cadavers; Wu et
   al., luohwu/NeuralBoneReg-implementation at commit 57d07b0, docs/real_data.md) are laid out so.
+  ``--points N`` runs each as a random subset of N of its points (case ``NAME/Npts``): a sparser
+  cloud of the same bone, as a user whose compounding kept fewer points has.
 * ``--sweep DIR --ct MESH``: a tracked sweep and the CT of one bone it images, e.g. the whole sweep of
   the public UltraBones100k repository (``CT-US bone alignment optimization/record_folder``: its
   ``UltrasoundImages`` as ``frames/``, ``sweep_initial.csv`` as ``poses.csv`` and the calibration of
@@ -253,6 +255,14 @@ def clouds_from(args: argparse.Namespace) -> list[tuple[str, Path, Path]]:
     return out
 
 
+def sparser(points: np.ndarray, n: int) -> np.ndarray:
+    """``n`` of ``points`` (N, 3), drawn at random without replacement (always the same draw), in
+    their order (a compounded cloud's frames stay runs); all of them when ``n`` ≥ N."""
+    if n >= len(points):
+        return points
+    return points[np.sort(np.random.default_rng(0).choice(len(points), n, replace=False))]
+
+
 def principal_pose(points: np.ndarray) -> np.ndarray:
     """The 4 × 4 rigid motion (mm) taking ``points`` (N, 3) into their principal axes: the centroid to
     the origin, the axes by decreasing spread, the first two signed so that the points' skew along
@@ -368,6 +378,8 @@ def main() -> None:
     p.add_argument("--describe", action="store_true", help="only describe the inputs against their CT")
     p.add_argument("--pose", choices=("given", "principal"), default="given", help="run every input in its "
                    "own frame, or turned with its CT into the cloud's principal axes")
+    p.add_argument("--points", type=int, default=None, metavar="N", help="run each compounded cloud as a "
+                   "random subset of N of its points (seeded; the case is named NAME/Npts): sparser clouds")
     p.add_argument("--register", action="store_true", help="also score against the CT registered to each "
                    "input's points (reg_ columns)")
     p.add_argument("--rescore", action="store_true", help="score the rows already in --json again from their "
@@ -388,7 +400,10 @@ def main() -> None:
     log = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
     inputs = []  # (case, variant, points, probe, frames, ct, near)
     for name, pts, ct in clouds_from(args):
-        inputs.append((name, "cloud", load_points(pts), None, None, ct, None))
+        points = load_points(pts)
+        if args.points:
+            name, points = f"{name}/{args.points}pts", sparser(points, args.points)
+        inputs.append((name, "cloud", points, None, None, ct, None))
     if args.sweep:
         if not args.ct:
             sys.exit("--sweep needs --ct (the CT mesh of the bone to score)")

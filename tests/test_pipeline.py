@@ -309,10 +309,31 @@ def test_max_voxels_coarsens_the_voxel_until_the_cloud_fits():
                                    **{**SMALL, "data.max_voxels": 3_000})
     assert rec.counts["voxelized_points"] <= 3_000 < len(pts)
     assert rec.counts["voxel_size_mm"] > 0.1
+    assert 4.0 <= rec.counts["plane_radius_mm"] <= 8.0  # data.surface_fit_mm, wider where sparse
     radial = np.abs(np.hypot(rec.mesh.vertices[:, 0], rec.mesh.vertices[:, 2]) - RADIUS)
     assert np.median(radial) < 0.5
     plain = ultraboneudf.reconstruct(pts[:2_000], preset="fast", device="cpu", seed=3, **SMALL)
     assert plain.counts["voxel_size_mm"] == 0.1   # no limit: the voxel as configured
+    assert plain.counts["plane_radius_mm"] == 0.0  # no local planes
+
+
+def test_a_sparse_cloud_gets_wider_planes_and_keeps_its_surface():
+    """A clean plane of 0.25 points per mm² (12 within 4 mm): at the fixed 4 mm radius the local
+    planes take 4% of it for isolated points or outliers; the robust preset widens the radius until
+    the median point has 36 within it, and keeps all but a few of them. The radius used is reported."""
+    from ultraboneudf.config.presets import preset
+    from ultraboneudf.preprocess import prepare
+
+    rng = np.random.default_rng(1)
+    pts = np.c_[rng.uniform(-60.0, 60.0, (3600, 2)), rng.normal(0.0, 0.3, 3600)]
+    fixed = preset("robust")
+    fixed.data.surface_fit_points = 0
+    _, narrow = prepare(pts, fixed, seed=0)
+    _, wide = prepare(pts, preset("robust"), seed=0)
+    assert narrow.plane_radius_mm == 4.0 and narrow.outliers > 0.03 * len(pts)
+    assert 6.0 < wide.plane_radius_mm < 7.5  # 4 mm × √(36 / 12)
+    assert wide.outliers < 0.01 * len(pts)
+    assert wide.planes.base == pytest.approx(wide.plane_radius_mm / wide.normalizer.scale)
 
 
 def test_configure_gives_the_complete_configuration_reconstruct_takes_as_it_is(small_run):

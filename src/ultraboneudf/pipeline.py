@@ -450,7 +450,7 @@ def _finish(surface: FittedSurface, progress: Progress) -> Reconstruction:
     }
     timings["total_s"] = time.perf_counter() - surface.started
     counts = {"input_points": unit.input_points, "voxelized_points": len(unit.points) + unit.outliers,
-              "voxel_size_mm": unit.voxel_mm,
+              "voxel_size_mm": unit.voxel_mm, "plane_radius_mm": unit.plane_radius_mm,
               "outliers_removed": unit.outliers, "frames": unit.frames, "extract_depth": extract_cfg.max_depth,
               "extract_margin": extract_cfg.margin,
               **fitted.counts,

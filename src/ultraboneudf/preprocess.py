@@ -23,7 +23,7 @@ from .geometry.echo_layers import false_echoes
 from .geometry.frames import frame_axes, sweep_ends
 from .geometry.normalize import Normalizer
 from .geometry.data_surface import DataSurface
-from .geometry.surface_fit import LocalPlanes, fit_local_planes, shadowed, steep_echoes
+from .geometry.surface_fit import LocalPlanes, fit_local_planes, radius_for_density, shadowed, steep_echoes
 from .geometry.voxel import voxel_downsample, voxel_downsample_with
 from .io import check_units, validate_points
 
@@ -101,6 +101,7 @@ class UnitCloud:
     outliers: int               # points the local-plane stage dropped
     frames: int                 # distinct sweep frames given with the points (0: none given)
     voxel_mm: float             # the voxel edge used (data.voxel_size_mm, or coarser: data.max_voxels)
+    plane_radius_mm: float      # the local planes' first radius (data.surface_fit_mm, or wider where sparse)
     voxel_s: float
     surface_fit_s: float
 
@@ -146,9 +147,10 @@ def to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int
         voxel *= max(1.2, float(np.sqrt(len(voxelised) / d.max_voxels)))
         voxelised, voxel_attrs = _voxel_mean(points, attrs, voxel)
     t1 = time.perf_counter()
-    planes, outliers = None, 0
+    planes, outliers, radius = None, 0, 0.0
     if d.surface_fit_mm > 0:
-        voxelised, voxel_attrs, planes, outliers = local_plane_stage(voxelised, voxel_attrs, d, source)
+        radius = radius_for_density(voxelised, d.surface_fit_mm, d.surface_fit_points)
+        voxelised, voxel_attrs, planes, outliers = local_plane_stage(voxelised, voxel_attrs, d, source, radius)
         if voxel_attrs is not None and voxel_attrs.with_frames:
             a = voxel_attrs.settled()
             planes = dataclasses.replace(planes, frame_axis=a.frame_axis, frame_order=a.frame_order,
@@ -162,6 +164,7 @@ def to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int
                      planes=None if planes is None else planes.scaled(1.0 / normalizer.scale),
                      normalizer=normalizer, input_points=n_input, outliers=outliers,
                      frames=0 if frames is None else len(np.unique(frames)), voxel_mm=voxel,
+                     plane_radius_mm=radius,
                      voxel_s=t1 - t0, surface_fit_s=time.perf_counter() - t1)
 
 
@@ -174,28 +177,30 @@ def _voxel_mean(points: np.ndarray, attrs: PointAttributes | None, voxel: float
     return voxelised, PointAttributes.from_columns(columns)
 
 
-def local_plane_stage(points: np.ndarray, attrs: PointAttributes | None, d: DataConfig, source: str
-                      ) -> tuple[np.ndarray, PointAttributes | None, LocalPlanes, int]:
-    """Robust local planes of the voxelised ``points`` (N, 3) mm, ``data.denoise`` times (at least
-    once): drop the false echo layers (``front_echo_mm``, ``min_component``) and the outliers
-    (``outlier_sigmas``), move the points onto their planes (``denoise``), drop the echoes in the
-    shadow of others along their beam (``shadow_mm``; needs the probe positions). Returns the
-    points, their attributes, their last planes and the number dropped."""
+def local_plane_stage(points: np.ndarray, attrs: PointAttributes | None, d: DataConfig, source: str,
+                      radius: float) -> tuple[np.ndarray, PointAttributes | None, LocalPlanes, int]:
+    """Robust local planes of the voxelised ``points`` (N, 3) mm at ``radius`` mm
+    (``data.surface_fit_mm``, or the wider one :func:`radius_for_density` gives a sparse cloud),
+    ``data.denoise`` times (at least once): drop the false echo layers (``front_echo_mm``,
+    ``min_component``) and the outliers (``outlier_sigmas``), move the points onto their planes
+    (``denoise``), drop the echoes in the shadow of others along their beam (``shadow_mm``; needs
+    the probe positions). Returns the points, their attributes, their last planes and the number
+    dropped."""
     planes, dropped = None, 0
     for _ in range(max(1, d.denoise)):
         view = None
         if attrs is not None:  # sweep points: the planes must face the probe
             view = points - attrs.probe
             view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
-        planes = fit_local_planes(points, d.surface_fit_mm, view=view, steep_deg=d.steep_planes_deg)
+        planes = fit_local_planes(points, radius, view=view, steep_deg=d.steep_planes_deg)
         keep = ~false_echoes(points, planes, view, depth=d.front_echo_mm, ratio=d.front_echo_ratio,
                              fraction=d.min_component)
         if d.outlier_sigmas > 0:
             spare = None if view is None else steep_echoes(points, view, planes, _STEEP_ECHO_SHADOW_MM)
-            keep &= ~planes.outliers(d.outlier_sigmas, 0.1 * d.surface_fit_mm, spare)
+            keep &= ~planes.outliers(d.outlier_sigmas, 0.1 * radius, spare)
         if not keep.any():
-            raise InputError(f"{source}: no point has enough neighbours within data.surface_fit_mm = "
-                             f"{d.surface_fit_mm:g} mm to form a surface (is the cloud in mm?)")
+            raise InputError(f"{source}: no point has enough neighbours within {radius:g} mm "
+                             f"(data.surface_fit_mm) to form a surface (is the cloud in mm?)")
         if d.denoise:
             points = planes.projected(points)
         if view is not None and d.shadow_mm > 0:  # among the points kept so far

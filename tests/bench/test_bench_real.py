@@ -134,3 +134,15 @@ def test_the_principal_pose_is_rigid_and_follows_the_cloud(bench_real):
     np.testing.assert_allclose(image_a.mean(axis=0), 0.0, atol=1e-9)
     spread = image_a.std(axis=0)
     assert spread[0] > spread[1] > spread[2]
+
+
+def test_a_sparser_cloud_is_a_fixed_ordered_subset(bench_real):
+    """--points: n distinct points of the cloud, in their order, the same draw every time; the whole
+    cloud when n is not smaller."""
+    cloud = np.random.default_rng(5).normal(size=(1000, 3))
+    part = bench_real.sparser(cloud, 300)
+    assert part.shape == (300, 3)
+    rows = [int(np.flatnonzero((cloud == p).all(axis=1))[0]) for p in part]
+    assert rows == sorted(set(rows))
+    np.testing.assert_array_equal(part, bench_real.sparser(cloud, 300))
+    assert bench_real.sparser(cloud, 1000) is cloud

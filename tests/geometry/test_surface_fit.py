@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ultraboneudf.geometry.data_surface import DataSurface
-from ultraboneudf.geometry.surface_fit import fit_local_planes, steep_echoes
+from ultraboneudf.geometry.surface_fit import fit_local_planes, radius_for_density, steep_echoes
 
 
 def noisy_plane(n=20_000, noise=0.5, seed=0, half=30.0):
@@ -23,6 +23,17 @@ def slices(spacing=1.5, step=0.15, noise=0.0, half=20.0, seed=0):
                           for y in np.arange(-half, half + 1e-9, spacing)])
     pts[:, 2] += rng.normal(0.0, noise, len(pts)) if noise else 0.0
     return pts
+
+
+@pytest.mark.parametrize("per_mm2, expected", [(5.0, 4.0), (1.0 / np.pi, 6.0), (0.03, 8.0)])
+def test_the_planes_radius_widens_on_a_sparse_surface_by_the_root_of_the_shortfall(per_mm2, expected):
+    """36 points wanted within 4 mm: a dense plane keeps 4 mm; one of 1/π points per mm² (16 within
+    4 mm) gets 4 × √(36/16) = 6 mm; a very sparse one stops at twice the radius."""
+    half = 60.0
+    pts = noisy_plane(n=int(per_mm2 * (2 * half) ** 2), noise=0.1, seed=2, half=half)
+    got = radius_for_density(pts, 4.0, 36)
+    assert got == pytest.approx(expected, rel=0.06)
+    assert radius_for_density(pts, 4.0, 0) == 4.0
 
 
 def test_planes_of_a_noisy_plane_give_its_normal_noise_and_the_denoised_points():

@@ -79,11 +79,12 @@ def _fast() -> Config:
 def _robust() -> Config:
     """``fast`` made for what ultrasound gives: noisy, slice-structured, gappy points with false echoes.
 
-    A robust plane is fitted to the points within 4 mm of every point (mm, before normalisation):
-    points more than three robust spreads from it are dropped (false echoes in the shadow, isolated
-    detections) and the rest are moved onto it (noise along the beam, offsets between slices). The
-    warm start and the far-field term regress ``u`` on the distance to the surface interpolated
-    between the points across gaps up to the plane's radius (across a sweep's frames, when they are
+    A robust plane is fitted to the points within 4 mm of every point (mm, before normalisation;
+    wider, up to 8 mm, where the median point has fewer than 36 points within 4 mm: a sparse
+    cloud): points more than three robust spreads from it are dropped (false echoes in the shadow,
+    isolated detections) and the rest are moved onto it (noise along the beam, offsets between
+    slices). The warm start and the far-field term regress ``u`` on the distance to the surface
+    interpolated between the points across gaps up to the plane's radius (across a sweep's frames, when they are
     known, up to 10 mm: a run of lost frames), instead of the distance to the nearest point, which
     between slices lies beside the query rather than under it; past the data's rims that surface
     goes on for half the plane radius (2 mm), where an oblique echo faded (not past a sweep's first
@@ -106,6 +107,7 @@ def _robust() -> Config:
     cfg.model.hidden = (128, 128, 128, 128)
     cfg.data.max_voxels = 200_000
     cfg.data.surface_fit_mm = 4.0
+    cfg.data.surface_fit_points = 36
     cfg.data.denoise = 1
     cfg.data.outlier_sigmas = 3.0
     cfg.data.bridge = 1.0

@@ -68,6 +68,14 @@ class DataConfig(_Section):
     """Radius (mm) of the robust local plane fitted around every voxelised point
     (:mod:`~ultraboneudf.geometry.surface_fit`); 0 = none. ``denoise``, ``outlier_sigmas`` and the
     ``surface`` distance target (``loss.distance_target``) and ``bridge`` use these planes."""
+    surface_fit_points: int = 0
+    """Sparse clouds: where the median voxelised point has fewer than this many points (itself
+    included) within ``surface_fit_mm``, the planes' radius grows by the square root of the
+    shortfall (a surface's count grows with the square of the radius), at most to twice
+    ``surface_fit_mm``, and every length taken from it with it (the false-echo columns and groups,
+    the gaps bridged): the columns compare counts of echoes and the planes' spreads come from their
+    neighbours, which a sparse neighbourhood holds too few of to tell bone from its band. The radius
+    used is ``counts.plane_radius_mm``; 0 = ``surface_fit_mm`` as given."""
     denoise: int = 0
     """Passes of: fit the local planes, drop the outliers (``outlier_sigmas``), move every point
     onto its plane. Removes the noise across the surface (ultrasound: along the beam) and the

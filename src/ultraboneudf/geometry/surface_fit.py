@@ -162,6 +162,24 @@ def fit_local_planes(points: np.ndarray, radius: float, view: np.ndarray | None 
     return out
 
 
+def radius_for_density(points: np.ndarray, radius: float, target: int, most: float = 2.0,
+                       sample: int = 5_000) -> float:
+    """The local planes' first radius for ``points`` (N, 3): ``radius`` where the median point has
+    at least ``target`` points (itself included) within it, else wider by the square root of the
+    shortfall (a surface's count grows with the square of the radius), at most ``most`` ×
+    ``radius``. The median is taken over an evenly strided ``sample`` of the points, so the answer
+    is deterministic. ``target`` ≤ 0 or fewer than two points: ``radius`` as given."""
+    pts = np.asarray(points, dtype=np.float64)
+    if target <= 0 or radius <= 0 or len(pts) < 2:
+        return float(radius)
+    probe = pts[::max(1, len(pts) // sample)]
+    count = kd_tree(pts).query_ball_point(probe, radius, return_length=True, workers=-1)
+    median = float(np.median(count))
+    if median >= target:
+        return float(radius)
+    return float(radius * min(most, np.sqrt(target / max(median, 1.0))))
+
+
 def _local_noise(on_plane: np.ndarray, offset: np.ndarray, valid: np.ndarray, k: int) -> np.ndarray:
     """(N,) 1.4826 × the median |offset| of the ``k`` fitted points nearest on the surface (by
     their projections ``on_plane``, so that a point far from its plane does not pick neighbours
