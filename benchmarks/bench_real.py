@@ -7,7 +7,9 @@ Inputs (paths given on the command line, mm, each in the frame of its CT):
   UltraBonesHip's seven early-access clouds (five femurs and two pelves of three cadavers; Wu et
   al., luohwu/NeuralBoneReg-implementation at commit 57d07b0, docs/real_data.md) are laid out so.
   ``--points N`` runs each as a random subset of N of its points (case ``NAME/Npts``): a sparser
-  cloud of the same bone, as a user whose compounding kept fewer points has.
+  cloud of the same bone, as a user whose compounding kept fewer points has; ``--cloud-frame-step
+  K`` as every K-th of its frames (``frames_in_order``; case ``NAME/every_K``): a sweep with fewer
+  frames.
 * ``--sweep DIR --ct MESH``: a tracked sweep and the CT of one bone it images, e.g. the whole sweep of
   the public UltraBones100k repository (``CT-US bone alignment optimization/record_folder``: its
   ``UltrasoundImages`` as ``frames/``, ``sweep_initial.csv`` as ``poses.csv`` and the calibration of
@@ -263,6 +265,13 @@ def sparser(points: np.ndarray, n: int) -> np.ndarray:
     return points[np.sort(np.random.default_rng(0).choice(len(points), n, replace=False))]
 
 
+def every_kth_frame(points: np.ndarray, k: int) -> np.ndarray:
+    """The points of every ``k``-th frame of a compounded cloud that keeps each frame's points
+    together (:func:`frames_in_order`), in their order; the points in no frame are left out."""
+    label = frames_in_order(points)
+    return points[(label >= 0) & (label % k == 0)]
+
+
 def principal_pose(points: np.ndarray) -> np.ndarray:
     """The 4 × 4 rigid motion (mm) taking ``points`` (N, 3) into their principal axes: the centroid to
     the origin, the axes by decreasing spread, the first two signed so that the points' skew along
@@ -380,6 +389,8 @@ def main() -> None:
                    "own frame, or turned with its CT into the cloud's principal axes")
     p.add_argument("--points", type=int, default=None, metavar="N", help="run each compounded cloud as a "
                    "random subset of N of its points (seeded; the case is named NAME/Npts): sparser clouds")
+    p.add_argument("--cloud-frame-step", type=int, default=None, metavar="K", help="run each compounded "
+                   "cloud as every K-th of its frames (found from the points' order; case NAME/every_K)")
     p.add_argument("--register", action="store_true", help="also score against the CT registered to each "
                    "input's points (reg_ columns)")
     p.add_argument("--rescore", action="store_true", help="score the rows already in --json again from their "
@@ -403,6 +414,8 @@ def main() -> None:
         points = load_points(pts)
         if args.points:
             name, points = f"{name}/{args.points}pts", sparser(points, args.points)
+        if args.cloud_frame_step:
+            name, points = f"{name}/every_{args.cloud_frame_step}", every_kth_frame(points, args.cloud_frame_step)
         inputs.append((name, "cloud", points, None, None, ct, None))
     if args.sweep:
         if not args.ct:

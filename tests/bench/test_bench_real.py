@@ -146,3 +146,13 @@ def test_a_sparser_cloud_is_a_fixed_ordered_subset(bench_real):
     assert rows == sorted(set(rows))
     np.testing.assert_array_equal(part, bench_real.sparser(cloud, 300))
     assert bench_real.sparser(cloud, 1000) is cloud
+
+
+def test_every_kth_frame_keeps_whole_frames(bench_real):
+    """--cloud-frame-step 3 on twelve slices: the points of slices 0, 3, 6 and 9, in their order."""
+    frames = _slices(np.random.default_rng(2))
+    kept = bench_real.every_kth_frame(np.concatenate(frames), 3)
+    planes = np.unique(kept[:, 2])
+    np.testing.assert_allclose(planes, np.linspace(-20.0, 20.0, 12)[[0, 3, 6, 9]])
+    assert len(kept) > 0.98 * 4 * len(frames[0])
+    np.testing.assert_array_equal(np.diff(kept[:, 2]) >= 0, True)
