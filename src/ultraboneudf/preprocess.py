@@ -2,11 +2,11 @@
 
 :func:`prepare` takes a cloud (mm) with the optional per-point attributes of a tracked sweep (the
 probe position that imaged each point, its frame) through: validation, optional test noise, the
-voxel mean (the attributes averaged with their points), the local-plane stage at ``data.surface_fit_mm``
-or wider on a sparse cloud (outliers and false echo layers dropped, points moved onto their planes,
-echoes in the shadow of others dropped) and
-the normalisation (:class:`Normalizer`, fitted on the result). The result, a :class:`UnitCloud`,
-carries the normaliser whose inverse maps the mesh back to mm (:mod:`ultraboneudf.pipeline`).
+voxel mean (the attributes averaged with their points), the local-plane stage at
+``data.surface_fit_mm`` or wider on a sparse cloud (outliers and false echo layers dropped, points
+moved onto their planes, echoes in the shadow of others dropped) and the normalisation
+(:class:`Normalizer`, fitted on the result). The result, a :class:`UnitCloud`, carries the
+normaliser whose inverse maps the mesh back to mm (:mod:`ultraboneudf.pipeline`).
 """
 
 from __future__ import annotations

@@ -84,8 +84,8 @@ def _robust() -> Config:
     cloud): points more than three robust spreads from it are dropped (false echoes in the shadow,
     isolated detections) and the rest are moved onto it (noise along the beam, offsets between
     slices). The warm start and the far-field term regress ``u`` on the distance to the surface
-    interpolated between the points across gaps up to the plane's radius (across a sweep's frames, when they are
-    known, up to 10 mm: a run of lost frames), instead of the distance to the nearest point, which
+    interpolated between the points across gaps up to the plane's radius (across a sweep's frames,
+    when they are known, up to 10 mm: a run of lost frames), instead of the distance to the nearest point, which
     between slices lies beside the query rather than under it; past the data's rims that surface
     goes on for half the plane radius (2 mm), where an oblique echo faded (not past a sweep's first
     and last image planes, past which the probe never looked), also past the few echoes of a steep
