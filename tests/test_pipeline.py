@@ -310,11 +310,13 @@ def test_max_voxels_coarsens_the_voxel_until_the_cloud_fits():
     assert rec.counts["voxelized_points"] <= 3_000 < len(pts)
     assert rec.counts["voxel_size_mm"] > 0.1
     assert 4.0 <= rec.counts["plane_radius_mm"] <= 8.0  # data.surface_fit_mm, wider where sparse
+    assert 0.4 <= rec.counts["trim_normal_mm"] <= 1.0  # extract.trim_normal_mm, nearer on a thin band
     radial = np.abs(np.hypot(rec.mesh.vertices[:, 0], rec.mesh.vertices[:, 2]) - RADIUS)
     assert np.median(radial) < 0.5
     plain = ultraboneudf.reconstruct(pts[:2_000], preset="fast", device="cpu", seed=3, **SMALL)
     assert plain.counts["voxel_size_mm"] == 0.1   # no limit: the voxel as configured
     assert plain.counts["plane_radius_mm"] == 0.0  # no local planes
+    assert plain.counts["trim_normal_mm"] == 0.0
 
 
 def test_a_sparse_cloud_gets_wider_planes_and_keeps_its_surface():
@@ -377,6 +379,44 @@ def test_the_extract_margin_covers_how_far_above_zero_the_field_stays_on_its_poi
     assert resolve_margin(cfg, field, on).margin == 0.002
     assert resolve_margin(dataclasses.replace(cfg, data_margin=0.0), field, above).margin == 0.002
     assert resolve_margin(cfg, None, above).margin == 0.002
+
+
+def test_the_normal_trim_follows_the_spread_of_the_band():
+    """Bands of points about the plane z = 0, σ = 0.05 / 0.2 / 0.5 mm: the robust preset's normal
+    trim is 3 σ (their planes' median spread) where that is under ``trim_normal_mm`` (1 mm), never
+    under 0.4 mm; in unit space (scale 100 mm per unit) the same. A sheet 0.6 mm over the thinnest
+    band is trimmed away with it and kept by the fixed 1 mm; ``trim_normal_sigmas`` = 0 or no planes
+    leave the trim as given."""
+    from ultraboneudf.config.presets import preset
+    from ultraboneudf.extraction import trim_to_support
+    from ultraboneudf.geometry.data_surface import DataSurface
+    from ultraboneudf.geometry.surface_fit import fit_local_planes
+    from ultraboneudf.pipeline import resolve_normal_trim
+
+    cfg = preset("robust").extract
+    assert (cfg.trim_normal_mm, cfg.trim_normal_sigmas) == (1.0, 3.0)
+    rng = np.random.default_rng(0)
+    trims = {}
+    for sigma in (0.05, 0.2, 0.5):
+        pts = np.c_[rng.uniform(-30.0, 30.0, (6000, 2)), rng.normal(0.0, sigma, 6000)]
+        planes = fit_local_planes(pts, 4.0)
+        trims[sigma] = resolve_normal_trim(cfg, planes, 1.0).trim_normal_mm
+        unit = resolve_normal_trim(cfg, planes.scaled(0.01), 100.0).trim_normal_mm
+        assert unit == pytest.approx(trims[sigma])
+    assert trims[0.05] == 0.4
+    assert trims[0.2] == pytest.approx(0.6, abs=0.05)
+    assert trims[0.5] == 1.0
+    assert resolve_normal_trim(dataclasses.replace(cfg, trim_normal_sigmas=0.0), planes, 1.0).trim_normal_mm == 1.0
+    assert resolve_normal_trim(cfg, None, 1.0).trim_normal_mm == 1.0
+
+    pts = np.c_[rng.uniform(-30.0, 30.0, (6000, 2)), rng.normal(0.0, 0.05, 6000)]
+    planes = fit_local_planes(pts, 4.0)
+    surface = DataSurface.from_planes(pts, planes, bridge=4.0)
+    sheet = trimesh.creation.box(extents=(40.0, 40.0, 1.2))  # faces at z = ±0.6 and its sides
+    sheet = trimesh.Trimesh(sheet.vertices, sheet.faces[np.abs(sheet.triangles_center[:, 2] - 0.6) < 1e-9])
+    assert trim_to_support(sheet, surface, 3.0, max_normal=1.0) is sheet
+    trim = resolve_normal_trim(cfg, planes, 1.0).trim_normal_mm
+    assert trim_to_support(sheet, surface, 3.0, max_normal=trim) is None
 
 
 def test_with_the_data_margin_the_extractor_meshes_a_field_that_stays_above_zero_on_its_points():

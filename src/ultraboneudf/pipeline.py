@@ -33,6 +33,7 @@ from .extraction import extract_mesh, mesh_quality, trim_to_support
 from .fields.base import Field
 from .geometry.normalize import Normalizer
 from .geometry.data_surface import DataSurface
+from .geometry.surface_fit import LocalPlanes
 from .io import check_outputs, save_mesh_with_sidecar
 from .methods import Fitted, get_method
 from .methods import ultraboneudf as ubu
@@ -400,6 +401,7 @@ class FittedSurface:
                  ) -> tuple[trimesh.Trimesh | None, int, ExtractConfig]:
         """The mesh in mm, the faces the support trim removed and the extraction settings used."""
         cfg = resolve_margin(resolve_leaf_size(cfg, self.normalizer), self.fitted.field, self.unit.points)
+        cfg = resolve_normal_trim(cfg, self.unit.planes, self.normalizer.scale)
         if self.fitted.mesh is not None:
             unit_mesh = self.fitted.mesh
         elif self.fitted.field is not None:
@@ -452,7 +454,7 @@ def _finish(surface: FittedSurface, progress: Progress) -> Reconstruction:
     counts = {"input_points": unit.input_points, "voxelized_points": len(unit.points) + unit.outliers,
               "voxel_size_mm": unit.voxel_mm, "plane_radius_mm": unit.plane_radius_mm,
               "outliers_removed": unit.outliers, "frames": unit.frames, "extract_depth": extract_cfg.max_depth,
-              "extract_margin": extract_cfg.margin,
+              "extract_margin": extract_cfg.margin, "trim_normal_mm": extract_cfg.trim_normal_mm,
               **fitted.counts,
               "vertices": 0 if mesh is None else len(mesh.vertices),
               "faces": 0 if mesh is None else len(mesh.faces), "trimmed_faces": trimmed}
@@ -487,6 +489,21 @@ def resolve_margin(cfg: ExtractConfig, field: Field | None, points: np.ndarray) 
 
 
 _DATA_QUANTILE = 0.9  # most of the data, not the stray points the field was never meant to reach
+
+
+def resolve_normal_trim(cfg: ExtractConfig, planes: LocalPlanes | None, scale: float) -> ExtractConfig:
+    """``cfg`` with ``trim_normal_mm`` lowered to ``cfg.trim_normal_sigmas`` × the median spread of
+    the points about their local ``planes`` (unit space; ``scale``: mm per unit), where that is
+    smaller, but not under ``_TRIM_NORMAL_FLOOR_MM`` (``extract.trim_normal_sigmas``); unchanged when
+    that is 0, the trim is off or there are no planes."""
+    if cfg.trim_normal_sigmas <= 0 or cfg.trim_normal_mm <= 0 or planes is None or not planes.valid.any():
+        return cfg
+    spread_mm = float(np.median(planes.spread[planes.valid])) * scale
+    trim = max(_TRIM_NORMAL_FLOOR_MM, cfg.trim_normal_sigmas * spread_mm)
+    return dataclasses.replace(cfg, trim_normal_mm=min(cfg.trim_normal_mm, trim))
+
+
+_TRIM_NORMAL_FLOOR_MM = 0.4  # on clean points the field's extracted zero set strays this far from the data
 
 
 def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, normalizer: Normalizer,

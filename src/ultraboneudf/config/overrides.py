@@ -161,7 +161,7 @@ def validate(cfg: Config, trains: bool = True) -> Config:
     need(cfg.grid.resolution >= 2, "grid.resolution", "at least 2")
     for key in ("data.voxel_size_mm", "data.surface_fit_mm", "data.bridge", "data.frame_bridge", "data.rim_reach",
                 "data.shadow_mm", "data.outlier_sigmas", "extract.trim_mm", "extract.trim_normal_mm",
-                "extract.trim_rim_mm", "extract.fit_mm", "extract.min_leaf_mm"):
+                "extract.trim_normal_sigmas", "extract.trim_rim_mm", "extract.fit_mm", "extract.min_leaf_mm"):
         section, name = key.split(".")
         value = getattr(getattr(cfg, section), name)
         need(math.isfinite(value) and value >= 0, key, "finite and 0 or more")

@@ -92,7 +92,8 @@ def _robust() -> Config:
     face (planes 60–80° from the beam orient the surface there without moving the points, and keep
     them where they are too sparse for a plane at 4 mm). The support trim measures to the bridged
     surface, so bridged gaps stay closed, and also drops the faces 1 mm or more from it along its
-    normal (sheets the noise band leaves under or over the bone) and, on a sweep, those 0.5 mm or more
+    normal (sheets the noise band leaves under or over the bone; on a thinner band three times the
+    points' spread about their planes, at least 0.4 mm) and, on a sweep, those 0.5 mm or more
     past its rims within the image planes (the field's continuation of a sheet where the bone curves
     away from the beam). ``L_OS`` on 256 surface points a
     step pins the zero level to the data where few frames saw the bone and the tangent phase alone
@@ -122,6 +123,7 @@ def _robust() -> Config:
     cfg.extract.min_leaf_mm = 0.75
     cfg.extract.data_margin = 1.25
     cfg.extract.trim_normal_mm = 1.0
+    cfg.extract.trim_normal_sigmas = 3.0
     cfg.extract.trim_rim_mm = 0.5
     cfg.clean.unfold_deg = 60.0
     return cfg

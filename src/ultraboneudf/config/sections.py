@@ -322,6 +322,14 @@ class ExtractConfig(_Section):
     that the extractor meshes as sheets a millimetre or two under or over the bone, which the
     distance rule of ``trim_mm`` keeps; a surface continued in its own plane past a rim is not
     affected."""
+    trim_normal_sigmas: float = 0.0
+    """The normal trim follows the data's band: where this × the median spread of the points
+    about their local planes (a robust σ, mm) is under ``trim_normal_mm``, that is the distance
+    used, but never under 0.4 mm; 0 = ``trim_normal_mm`` as given. A thin band (a bone boundary
+    traced one echo per scan line) keeps the field's zero set within a few tenths of a millimetre
+    of the data, and a sheet nearer than ``trim_normal_mm`` to it is still off the bone; on clean
+    points the field and its extraction stay within 0.4 mm of the data's surface. The distance used
+    is ``counts.trim_normal_mm`` in the sidecar."""
     trim_rim_mm: float = 0.0
     """A third support trim, past the data's rims where a sweep's probe looked: drop the faces whose
     mean vertex distance past the rim of the local planes' surface, within the image plane of the
