@@ -43,6 +43,14 @@ def test_stacked_network_matches_its_members():
         torch.testing.assert_close(g[k], gk, rtol=1e-5, atol=1e-6)
     back = stacked.unstack(nets[0])
     torch.testing.assert_close(back[2](x[2]), nets[2](x[2]))
+    # the value-only rows in the same forward sweep: the same values, the gradients of x alone
+    extra = torch.randn(3, 20, 3)
+    u2, g2, (ue,) = stacked.evaluate(x, [extra])
+    assert g2.shape == (3, 50, 3) and ue.shape == (3, 20)
+    torch.testing.assert_close(u2, u)
+    torch.testing.assert_close(g2, g)
+    for k, net in enumerate(nets):
+        torch.testing.assert_close(ue[k], net(extra[k]), rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.parametrize("gs_anchors,os_rows,gs_form", [(0, None, "per_anchor"), (64, None, "per_anchor"),

@@ -28,6 +28,31 @@ def test_explicit_input_gradient_equals_autograd_to_second_order(skip, abs_outpu
         torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("skip", [(), (2,)])
+def test_one_sweep_over_all_rows_equals_separate_evaluations(skip):
+    """The step's value-only rows (anchors, surface points) ride on the queries' forward sweep:
+    values, input gradients of the first rows and the weight gradients of a loss on both equal
+    separate evaluations (float64: to rounding)."""
+    from ultraboneudf.training.scans import OneScan
+
+    net = DistanceMLP((32, 64, 64), skip=skip, generator=torch.Generator().manual_seed(2)).double()
+    gen = torch.Generator().manual_seed(3)
+    q, a, s = (torch.randn(n, 3, generator=gen, dtype=torch.float64) * 0.5 for n in (40, 25, 30))
+    u1, g1 = value_and_grad(net, q.clone(), create_graph=True)
+    ua1, us1 = net(a), net(s)
+    model = OneScan(net)
+    u2, g2, (ua2, us2) = model.evaluate(q[None], [a[None], s[None]], model.weights())
+    assert u2.shape == (1, 40) and g2.shape == (1, 40, 3) and ua2.shape == (1, 25) and us2.shape == (1, 30)
+    for mine, theirs in ((u2[0], u1), (g2[0], g1), (ua2[0], ua1), (us2[0], us1)):
+        torch.testing.assert_close(mine, theirs, rtol=0, atol=1e-13)
+    def loss(u, g, ua, us):
+        return (g.square().sum(1) - 1).abs().mean() + u.mean() + ua.square().mean() + us.abs().mean()
+    p1 = torch.autograd.grad(loss(u1, g1, ua1, us1), list(net.parameters()))
+    p2 = torch.autograd.grad(loss(u2[0], g2[0], ua2[0], us2[0]), list(net.parameters()))
+    for x, y in zip(p1, p2):
+        torch.testing.assert_close(y, x, rtol=1e-10, atol=1e-12)
+
+
 def test_explicit_gradient_without_graph_is_detached():
     net = DistanceMLP((16, 16), generator=torch.Generator().manual_seed(1))
     u, g = value_and_grad(net, torch.randn(10, 3), create_graph=False)

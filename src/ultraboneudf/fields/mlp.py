@@ -70,28 +70,36 @@ class DistanceMLP(nn.Module):
         self.layers = nn.ModuleList(layers)
         self.abs_output = abs_output
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def weights(self) -> list[torch.Tensor]:
+        """The effective weight ``(out, in)`` of every layer, for several evaluations in one step."""
+        return [layer.weight() for layer in self.layers]
+
+    def forward(self, x: torch.Tensor, weights: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """``u(x)`` (M,); ``weights``: :meth:`weights`, computed once for several calls."""
+        weights = weights or self.weights()
         h = x
         last = len(self.layers) - 1
-        for i, layer in enumerate(self.layers):
+        for i, (layer, w) in enumerate(zip(self.layers, weights)):
             if i in self.skip:
                 # √2 keeps the activation scale of the concatenated input (IGR convention)
                 h = torch.cat([h, x], dim=-1) / math.sqrt(2.0)
-            h = layer(h)
+            h = torch.addmm(layer.bias, h, w.T)
             if i < last:
                 h = torch.relu(h)
         out = h.squeeze(-1)
         return out.abs() if self.abs_output else out
 
-    def value_and_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def value_and_grad(self, x: torch.Tensor, weights: list[torch.Tensor] | None = None,
+                       rows: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``u(x)`` (M,) and ``∇u(x)`` (M, 3) from one forward sweep and a hand-written backward
         sweep of the ReLU network: ``∇u = s·w_Lᵀ D_{L−1} W_{L−1} ⋯ D_1 W_1`` with the ReLU masks
         ``D`` and the output sign ``s``. Built from ordinary tensor operations, so the result is
         differentiable in the weights (for losses on ∇u) at first order: cheaper than autograd's
         double backward, which differentiates through the backward graph of the forward pass.
         Equal to autograd's input gradient, including its conventions ``relu'(0) = 0`` and
-        ``|·|'(0) = 0``."""
-        weights = [layer.weight() for layer in self.layers]
+        ``|·|'(0) = 0``. ``rows``: the gradient of the first ``rows`` inputs only, (rows, 3) (the
+        others' values come from the same forward sweep); ``weights`` as in :meth:`forward`."""
+        weights = weights or self.weights()
         h, acts = x, []
         root2 = math.sqrt(2.0)
         last = len(self.layers) - 1
@@ -101,10 +109,12 @@ class DistanceMLP(nn.Module):
             z = torch.addmm(layer.bias, h, w.T)
             if i < last:
                 h = torch.relu(z)
-                acts.append(h)
+                # the ReLU's mask: its derivative in the weights is zero, so it leaves the graph
+                acts.append(h.detach() if rows is None else h.detach()[:rows])
         z = z.squeeze(-1)
         u = z.abs() if self.abs_output else z
-        d = z.sign()[:, None] if self.abs_output else torch.ones_like(z)[:, None]  # du/dz_last
+        zr = z if rows is None else z[:rows]
+        d = zr.sign()[:, None] if self.abs_output else torch.ones_like(zr)[:, None]  # du/dz_last
         grad_x = None
         for i in range(last, -1, -1):
             if i < last:

@@ -28,18 +28,35 @@ class OneScan(nn.Module):
     def __init__(self, net: nn.Module, explicit: bool = True) -> None:
         super().__init__()
         self.net, self.explicit = net, explicit
+        self.mlp = explicit and isinstance(net, DistanceMLP)
 
-    def weights(self) -> None:
-        """Nothing to share between the step's evaluations (the layers compute their own weights)."""
-        return None
+    def weights(self) -> list[torch.Tensor] | None:
+        """A :class:`DistanceMLP`'s effective weights, computed once for the step's evaluations
+        (``None`` for other networks, which compute their own)."""
+        return self.net.weights() if self.mlp else None
 
-    def forward(self, x: torch.Tensor, weights: None = None) -> torch.Tensor:
-        return self.net(x[0])[None]
+    def forward(self, x: torch.Tensor, weights: list[torch.Tensor] | None = None) -> torch.Tensor:
+        return (self.net(x[0], weights) if self.mlp else self.net(x[0]))[None]
 
-    def value_and_grad(self, x: torch.Tensor, weights: None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def value_and_grad(self, x: torch.Tensor, weights: list[torch.Tensor] | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
         """``u`` (1, M) and ``∇u`` (1, M, 3), differentiable in the weights."""
-        u, g = value_and_grad(self.net, x[0], create_graph=True, explicit=self.explicit)
+        if self.mlp:
+            u, g = self.net.value_and_grad(x[0], weights)
+        else:
+            u, g = value_and_grad(self.net, x[0], create_graph=True, explicit=self.explicit)
         return u[None], g[None]
+
+    def evaluate(self, x: torch.Tensor, extra: list[torch.Tensor], weights: list[torch.Tensor] | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
+        """:meth:`value_and_grad` of ``x`` (1, M, 3) and the values (1, Mᵢ) of each of ``extra``
+        (1, Mᵢ, 3): with a :class:`DistanceMLP`, one forward sweep over all the rows."""
+        if not self.mlp:
+            u, g = self.value_and_grad(x, weights)
+            return u, g, [self(e, weights) for e in extra]
+        u, g = self.net.value_and_grad(torch.cat([x[0], *(e[0] for e in extra)]), weights, rows=x.shape[1])
+        parts = u.split([x.shape[1], *(e.shape[1] for e in extra)])
+        return parts[0][None], g[None], [p[None] for p in parts[1:]]
 
     def networks(self) -> list[nn.Module]:
         """The trained network (the module passed in, trained in place)."""
@@ -87,11 +104,12 @@ class StackedMLP(nn.Module):
         out = h.squeeze(-1)
         return out.abs() if self.abs_output else out
 
-    def value_and_grad(self, x: torch.Tensor, weights: list[torch.Tensor] | None = None
-                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    def value_and_grad(self, x: torch.Tensor, weights: list[torch.Tensor] | None = None,
+                       rows: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``u`` (K, M) and ``∇u`` (K, M, 3), differentiable in the weights: the hand-written
         backward sweep of :meth:`DistanceMLP.value_and_grad` batched over the K networks, or
-        autograd's double backward when built with ``explicit=False``."""
+        autograd's double backward when built with ``explicit=False``. ``rows``: the gradient of
+        the first ``rows`` inputs only, (K, rows, 3) (hand-written sweep only)."""
         weights = weights or self.weights()
         if not self.explicit:
             x = x.detach().requires_grad_(True)
@@ -103,15 +121,29 @@ class StackedMLP(nn.Module):
             z = torch.baddbmm(b[:, None, :], h, w.transpose(1, 2))
             if i < last:
                 h = torch.relu(z)
-                acts.append(h)
+                # the ReLU's mask: its derivative in the weights is zero, so it leaves the graph
+                acts.append(h.detach() if rows is None else h.detach()[:, :rows])
         z = z.squeeze(-1)
         u = z.abs() if self.abs_output else z
-        d = z.sign()[..., None] if self.abs_output else torch.ones_like(z)[..., None]
+        zr = z if rows is None else z[:, :rows]
+        d = zr.sign()[..., None] if self.abs_output else torch.ones_like(zr)[..., None]
         for i in range(last, -1, -1):
             if i < last:
                 d = torch.ops.aten.threshold_backward(d, acts[i], 0.0)
             d = torch.bmm(d, weights[i])
         return u, d
+
+    def evaluate(self, x: torch.Tensor, extra: list[torch.Tensor], weights: list[torch.Tensor] | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
+        """:meth:`value_and_grad` of ``x`` (K, M, 3) and the values (K, Mᵢ) of each of ``extra``
+        (K, Mᵢ, 3), from one forward sweep over all the rows (autograd's double backward: apart)."""
+        weights = weights or self.weights()
+        if not self.explicit:
+            u, g = self.value_and_grad(x, weights)
+            return u, g, [self(e, weights) for e in extra]
+        u, g = self.value_and_grad(torch.cat([x, *extra], dim=1), weights, rows=x.shape[1])
+        parts = u.split([x.shape[1], *(e.shape[1] for e in extra)], dim=1)
+        return parts[0], g, list(parts[1:])
 
     def networks(self) -> list[DistanceMLP]:
         """K separate networks holding the trained weights (copies of the first one given)."""
