@@ -11,6 +11,7 @@ from ultraboneudf.fields.mlp import DistanceMLP
 from ultraboneudf.geometry.queries import anchors, gaussian_queries, grid_queries, query_spread
 from ultraboneudf.training import TrainingData, train
 from ultraboneudf.training import StackedMLP, train_many
+from ultraboneudf.training.scans import evaluate_rows
 
 
 def _data(seed, n=1200, bump=0.0):
@@ -45,7 +46,7 @@ def test_stacked_network_matches_its_members():
     torch.testing.assert_close(back[2](x[2]), nets[2](x[2]))
     # the value-only rows in the same forward sweep: the same values, the gradients of x alone
     extra = torch.randn(3, 20, 3)
-    u2, g2, (ue,) = stacked.evaluate(x, [extra])
+    u2, g2, (ue,) = evaluate_rows(stacked, x, [extra], None)
     assert g2.shape == (3, 50, 3) and ue.shape == (3, 20)
     torch.testing.assert_close(u2, u)
     torch.testing.assert_close(g2, g)

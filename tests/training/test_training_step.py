@@ -33,7 +33,7 @@ def test_one_sweep_over_all_rows_equals_separate_evaluations(skip):
     """The step's value-only rows (anchors, surface points) ride on the queries' forward sweep:
     values, input gradients of the first rows and the weight gradients of a loss on both equal
     separate evaluations (float64: to rounding)."""
-    from ultraboneudf.training.scans import OneScan
+    from ultraboneudf.training.scans import OneScan, evaluate_rows
 
     net = DistanceMLP((32, 64, 64), skip=skip, generator=torch.Generator().manual_seed(2)).double()
     gen = torch.Generator().manual_seed(3)
@@ -41,7 +41,7 @@ def test_one_sweep_over_all_rows_equals_separate_evaluations(skip):
     u1, g1 = value_and_grad(net, q.clone(), create_graph=True)
     ua1, us1 = net(a), net(s)
     model = OneScan(net)
-    u2, g2, (ua2, us2) = model.evaluate(q[None], [a[None], s[None]], model.weights())
+    u2, g2, (ua2, us2) = evaluate_rows(model, q[None], [a[None], s[None]], model.weights())
     assert u2.shape == (1, 40) and g2.shape == (1, 40, 3) and ua2.shape == (1, 25) and us2.shape == (1, 30)
     for mine, theirs in ((u2[0], u1), (g2[0], g1), (ua2[0], ua1), (us2[0], us1)):
         torch.testing.assert_close(mine, theirs, rtol=0, atol=1e-13)

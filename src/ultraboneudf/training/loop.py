@@ -36,7 +36,7 @@ from .losses import (consistency_chamfer_loss, eikonal_loss, far_field_loss, glo
                      on_surface_loss, pull_loss, tangent_loss, tangent_residual, warm_start_loss)
 from .graph import LrSchedule, Replayer, device_draw, graph_capture_blocker
 from .samplers import SAMPLERS, learning_rate
-from .scans import OneScan, StackedMLP
+from .scans import OneScan, StackedMLP, evaluate_rows
 
 
 @contextmanager
@@ -188,14 +188,11 @@ def loss_terms(model: nn.Module, datas: Sequence[TrainingData], step: StepDraw, 
         p, _, s_mask = surface.take(step.surface_rows)
         if not cfg.lambda_eik:
             extra.append(p)
-    g = None
+    u, g, extra_u = evaluate_rows(model, q, extra, weights, grad=not warm)
     if warm:
-        u, *extra_u = model(torch.cat([q, *extra], dim=1), weights).split(
-            [q.shape[1], *(e.shape[1] for e in extra)], dim=1)
         terms["warm"] = warm_start_loss(u, static("static_distance"))
         total = terms["warm"]
     else:
-        u, g, extra_u = model.evaluate(q, extra, weights)
         g_hat = normalize(g)
         moved = q - u[..., None] * g_hat
         if cfg.kind == "tangent":

@@ -28,35 +28,26 @@ class OneScan(nn.Module):
     def __init__(self, net: nn.Module, explicit: bool = True) -> None:
         super().__init__()
         self.net, self.explicit = net, explicit
-        self.mlp = explicit and isinstance(net, DistanceMLP)
+        # a DistanceMLP's hand-written sweep: weights shared, ``rows`` taken (:func:`evaluate_rows`)
+        self.one_sweep = explicit and isinstance(net, DistanceMLP)
 
     def weights(self) -> list[torch.Tensor] | None:
         """A :class:`DistanceMLP`'s effective weights, computed once for the step's evaluations
         (``None`` for other networks, which compute their own)."""
-        return self.net.weights() if self.mlp else None
+        return self.net.weights() if self.one_sweep else None
 
     def forward(self, x: torch.Tensor, weights: list[torch.Tensor] | None = None) -> torch.Tensor:
-        return (self.net(x[0], weights) if self.mlp else self.net(x[0]))[None]
+        return (self.net(x[0], weights) if self.one_sweep else self.net(x[0]))[None]
 
-    def value_and_grad(self, x: torch.Tensor, weights: list[torch.Tensor] | None = None
-                       ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``u`` (1, M) and ``∇u`` (1, M, 3), differentiable in the weights."""
-        if self.mlp:
-            u, g = self.net.value_and_grad(x[0], weights)
+    def value_and_grad(self, x: torch.Tensor, weights: list[torch.Tensor] | None = None,
+                       rows: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``u`` (1, M) and ``∇u`` (1, M, 3), differentiable in the weights; ``rows``: the gradient
+        of the first ``rows`` inputs only (a :class:`DistanceMLP`'s hand-written sweep only)."""
+        if self.one_sweep:
+            u, g = self.net.value_and_grad(x[0], weights, rows)
         else:
             u, g = value_and_grad(self.net, x[0], create_graph=True, explicit=self.explicit)
         return u[None], g[None]
-
-    def evaluate(self, x: torch.Tensor, extra: list[torch.Tensor], weights: list[torch.Tensor] | None = None
-                 ) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
-        """:meth:`value_and_grad` of ``x`` (1, M, 3) and the values (1, Mᵢ) of each of ``extra``
-        (1, Mᵢ, 3): with a :class:`DistanceMLP`, one forward sweep over all the rows."""
-        if not self.mlp:
-            u, g = self.value_and_grad(x, weights)
-            return u, g, [self(e, weights) for e in extra]
-        u, g = self.net.value_and_grad(torch.cat([x[0], *(e[0] for e in extra)]), weights, rows=x.shape[1])
-        parts = u.split([x.shape[1], *(e.shape[1] for e in extra)])
-        return parts[0][None], g[None], [p[None] for p in parts[1:]]
 
     def networks(self) -> list[nn.Module]:
         """The trained network (the module passed in, trained in place)."""
@@ -86,6 +77,11 @@ class StackedMLP(nn.Module):
         self.bias = nn.ParameterList([stack("bias", i) for i in range(len(first.layers))])
         self.g = nn.ParameterList([stack("g", i) if wn else nn.Parameter(torch.zeros(0), requires_grad=False)
                                    for i, wn in enumerate(self.weight_norm)])
+
+    @property
+    def one_sweep(self) -> bool:
+        """Whether :meth:`value_and_grad` takes ``rows`` (the hand-written sweep; :func:`evaluate_rows`)."""
+        return self.explicit
 
     def weights(self) -> list[torch.Tensor]:
         """The effective weights ``(K, out, in)`` of every layer."""
@@ -133,18 +129,6 @@ class StackedMLP(nn.Module):
             d = torch.bmm(d, weights[i])
         return u, d
 
-    def evaluate(self, x: torch.Tensor, extra: list[torch.Tensor], weights: list[torch.Tensor] | None = None
-                 ) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
-        """:meth:`value_and_grad` of ``x`` (K, M, 3) and the values (K, Mᵢ) of each of ``extra``
-        (K, Mᵢ, 3), from one forward sweep over all the rows (autograd's double backward: apart)."""
-        weights = weights or self.weights()
-        if not self.explicit:
-            u, g = self.value_and_grad(x, weights)
-            return u, g, [self(e, weights) for e in extra]
-        u, g = self.value_and_grad(torch.cat([x, *extra], dim=1), weights, rows=x.shape[1])
-        parts = u.split([x.shape[1], *(e.shape[1] for e in extra)], dim=1)
-        return parts[0], g, list(parts[1:])
-
     def networks(self) -> list[DistanceMLP]:
         """K separate networks holding the trained weights (copies of the first one given)."""
         return self.unstack(self._template[0])
@@ -162,3 +146,22 @@ class StackedMLP(nn.Module):
                         layer.g.copy_(g[k])
             nets.append(net.to(self.v[0].device).eval())
         return nets
+
+
+def evaluate_rows(model: OneScan | StackedMLP, x: torch.Tensor, extra: list[torch.Tensor],
+                  weights: list[torch.Tensor] | None, grad: bool = True
+                  ) -> tuple[torch.Tensor, torch.Tensor | None, list[torch.Tensor]]:
+    """The values ``u`` (K, M) of ``x`` (K, M, 3), with ``grad`` their input gradient (K, M, 3)
+    (differentiable in the weights; else ``None``), and the values (K, Mᵢ) of each of ``extra``
+    (K, Mᵢ, 3): one forward sweep over all the rows where the model's hand-written gradient sweep
+    can stop at ``x``'s rows (``model.one_sweep``), else separate evaluations."""
+    sizes = [x.shape[1], *(e.shape[1] for e in extra)]
+    if not grad:
+        u, *rest = model(torch.cat([x, *extra], dim=1), weights).split(sizes, dim=1)
+        return u, None, rest
+    if not model.one_sweep:
+        u, g = model.value_and_grad(x, weights)
+        return u, g, [model(e, weights) for e in extra]
+    u, g = model.value_and_grad(torch.cat([x, *extra], dim=1), weights, rows=x.shape[1])
+    u, *rest = u.split(sizes, dim=1)
+    return u, g, rest
