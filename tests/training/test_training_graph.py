@@ -145,7 +145,7 @@ def test_the_sidecar_names_the_schedule_and_how_the_steps_ran():
     cpu = ultraboneudf.reconstruct(cloud, preset="fast", device="cpu", seed=0, **small)
     gpu = ultraboneudf.reconstruct(cloud, preset="fast", device="cpu", seed=0, train__budget="gpu", **small)
     assert cpu.method_info == {"budget": "cpu", "iters": 40, "batch": 16, "lr": 2e-3, "warmup": 400,
-                               "gs_anchors": 128, "os_rows": 0, "train_step": "eager"}
+                               "gs_anchors": 128, "os_rows": 0, "train_step": "eager", "train_threads": 1}
     assert {k: gpu.method_info[k] for k in ("budget", "iters", "batch", "lr", "gs_anchors")} == \
         {"budget": "gpu", "iters": 10, "batch": 256, "lr": 4e-3, "gs_anchors": 512}
     assert len(gpu.history["total"]) == 2 and gpu.sidecar()["config"]["train"]["iters"] == 40

@@ -185,6 +185,28 @@ def test_training_threads_are_restored():
     assert torch.get_num_threads() == before
 
 
+def test_training_threads_never_exceed_the_process_setting():
+    """A preset's thread count is an upper bound: a process limited to one thread (a benchmark's
+    ``--threads 1``, ``OMP_NUM_THREADS=1``) trains on one, and the sidecar says so."""
+    import ultraboneudf
+    from ultraboneudf.training import cpu_threads
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        with cpu_threads(2) as used:
+            assert used == torch.get_num_threads() == 1
+        rng = np.random.default_rng(0)
+        theta = rng.uniform(np.pi / 4, 3 * np.pi / 4, 1500)
+        cloud = np.c_[20 * np.cos(theta), rng.uniform(0, 30, 1500), 20 * np.sin(theta)]
+        rec = ultraboneudf.reconstruct(cloud, device="cpu", seed=0, train__iters=20, extract__max_depth=5)
+        assert rec.config.train.threads == 2 and rec.method_info["train_threads"] == 1
+    finally:
+        torch.set_num_threads(before)
+    with cpu_threads(before + 1) as used:
+        assert used == before
+
+
 def test_subnormals_are_flushed_on_the_cpu_inside_the_block_only():
     """FUNSR's discriminator drives Adam's second moments below float32's normal range, where a CPU
     computes many times slower; the block flushes them to zero and leaves the default (kept) after,

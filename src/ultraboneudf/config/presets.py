@@ -103,9 +103,12 @@ def _robust() -> Config:
     cloud's slices) the surface is still meshed; and the mesh's folds (faces meeting at more than
     60°, where the QEF vertices scatter across the noisy field's minimum) are smoothed out. The
     network is twice as wide as ``fast``'s (4 × 128): on these points it follows the denoised
-    surface more closely, for 1.6–1.8× the time (docs/robustness.md measures each part)."""
+    surface more closely, for 1.6–1.8× the time (docs/robustness.md measures each part); its step
+    (634 rows through 128-wide layers) runs faster on two CPU threads than on one, ``fast``'s does
+    not (docs/development.md)."""
     cfg = _fast()
     cfg.model.hidden = (128, 128, 128, 128)
+    cfg.train.threads = 2
     cfg.data.max_voxels = 200_000
     cfg.data.surface_fit_mm = 4.0
     cfg.data.surface_fit_points = 36

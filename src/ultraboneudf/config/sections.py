@@ -231,8 +231,10 @@ class TrainConfig(_Section):
     """Batch draw: ``strided`` (the reference, §0.5) or ``epoch`` (consecutive batches of one
     permutation of all stored queries per pass)."""
     threads: int = 0
-    """CPU threads of the training loop; 0 = PyTorch's setting. A small batch runs faster on one
-    thread (measured at batch 250 on 2 cores: 22 ms/step on one, 26 ms on two)."""
+    """CPU threads of the training loop, at most PyTorch's setting (the cores, ``OMP_NUM_THREADS``);
+    0 = PyTorch's setting. Small products run faster on few threads: the ``fast`` preset's step
+    on one, the default's on two (docs/development.md). The count used is the sidecar's
+    ``method_info.train_threads``; float sums, and so a run's last digits, follow it."""
     step: Literal["optimised", "plain"] = "optimised"
     """``optimised`` (hand-written input gradient and fused Adam) or ``plain`` (autograd's double
     backward and PyTorch's default Adam): the same losses and updates (tested to fp32 precision)."""

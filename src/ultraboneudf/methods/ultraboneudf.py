@@ -148,7 +148,7 @@ def fitted_field(net: torch.nn.Module, data: TrainingData, prep_s: float, result
               "anchors": len(data.anchors), "parameters": count_parameters(net)}
     info = {"budget": train_cfg.budget, "iters": train_cfg.iters, "batch": train_cfg.batch, "lr": train_cfg.lr,
             "warmup": train_cfg.warmup, "gs_anchors": loss_cfg.gs_anchors, "os_rows": loss_cfg.os_rows,
-            "train_step": result.step}
+            "train_step": result.step, "train_threads": result.threads}
     return Fitted(field=MLPField(net), counts=counts,
                   timings={"preprocess_s": prep_s, "train_s": result.seconds, **stages}, history=result.history,
                   info=info)

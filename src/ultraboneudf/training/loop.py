@@ -41,12 +41,14 @@ from .scans import OneScan, StackedMLP, evaluate_rows
 
 @contextmanager
 def cpu_threads(n: int):
-    """Run the block with ``n`` PyTorch CPU threads (``n ≤ 0``: unchanged), restoring the count after."""
+    """Run the block with ``n`` PyTorch CPU threads, but never more than PyTorch's own setting (the
+    machine's cores, or what ``OMP_NUM_THREADS`` or ``torch.set_num_threads`` chose), restoring the
+    count after; ``n ≤ 0``: unchanged. Yields the count the block runs with."""
     before = torch.get_num_threads()
     if n > 0:
-        torch.set_num_threads(n)
+        torch.set_num_threads(min(n, before))
     try:
-        yield
+        yield torch.get_num_threads()
     finally:
         torch.set_num_threads(before)
 
@@ -118,6 +120,9 @@ class TrainResult:
     step: str = "eager"
     """How the steps ran: ``eager``, ``cuda graph`` (captured after a few eager steps and
     replayed), or ``eager (why no graph)`` on a CUDA device."""
+    threads: int = 0
+    """The CPU threads the steps ran with (0 on a GPU): float sums, and so the last digits of a
+    run, follow it."""
 
 
 class _Rows:
@@ -350,7 +355,7 @@ def _loop(model: nn.Module, datas: list[TrainingData], loss_cfg: LossConfig, tra
         progress.log(f"training: eager steps ({reason})")
         if device.type == "cuda":
             mode = f"eager ({reason})"
-    with cpu_threads(threads), progress.stage("training", iters, start=start) as advance:
+    with cpu_threads(threads) as used, progress.stage("training", iters, start=start) as advance:
         # the pace of the last phase: after the warm start, and after CAP-UDF's larger second batch
         steady = max(warm_steps, expansion.at if expands else 0, start)
         log = LoopLog(iters, advance, device, log_every, lr=train_cfg.lr, progress=progress,
@@ -395,7 +400,8 @@ def _loop(model: nn.Module, datas: list[TrainingData], loss_cfg: LossConfig, tra
     seconds, history = log.finish()
     model.eval()
     return [TrainResult(seconds=seconds, iterations=iters,
-                        history={key: [row[k] for row in values] for key, values in history.items()}, step=mode)
+                        history={key: [row[k] for row in values] for key, values in history.items()}, step=mode,
+                        threads=used if device.type == "cpu" else 0)
             for k in range(len(datas))]
 
 
