@@ -10,7 +10,7 @@ import trimesh
 from PIL import Image
 
 from ultraboneudf.cli import main
-from ultraboneudf.evaluation import JSON_KEYS, Record, write_results_csv
+from ultraboneudf.evaluation import JSON_KEYS, SHARE_KEYS, Record, write_results_csv
 
 
 @pytest.fixture()
@@ -53,6 +53,26 @@ def test_evaluate_with_pseudo_ground_truth(files):
     assert data["d_gr_mean_mm"] == pytest.approx(1.0, abs=0.1) and data["d_rg_mean_mm"] > 3.0
 
 
+def test_evaluate_shares_within_a_distance(files, capsys):
+    # the reconstruction lies 1 mm outside the ground truth everywhere: all of it within 1.5 mm,
+    # none of it within 0.5 mm, in both directions
+    for within, share in ((1.5, 1.0), (0.5, 0.0)):
+        out = files / f"m{within}.json"
+        assert main(["evaluate", str(files / "recon.ply"), "--gt", str(files / "gt.ply"), "--samples", "20000",
+                     "--within-mm", str(within), "--json", str(out), "--quiet"]) == 0
+        data = json.loads(out.read_text())
+        assert list(data) == list(JSON_KEYS + SHARE_KEYS) and data["within_mm"] == within
+        assert data["on_gt"] == share and data["covered"] == share
+        assert f"within {within:g} mm: {share:.3f} of the mesh area" in capsys.readouterr().out
+    # with the pseudo ground truth (the cap) the share on the ground truth is still the whole mesh's
+    out = files / "p.json"
+    assert main(["evaluate", str(files / "recon.ply"), "--gt", str(files / "gt.ply"), "--points",
+                 str(files / "raw.xyz"), "--samples", "20000", "--within-mm", "1.5", "--json", str(out),
+                 "--quiet"]) == 0
+    data = json.loads(out.read_text())
+    assert data["on_gt"] == 1.0 and data["covered"] == 1.0 and data["d_rg_mean_mm"] > 3.0
+
+
 def test_evaluate_empty_mesh_is_a_counted_failure(files, capsys):
     out = files / "m.json"
     assert main(["evaluate", str(files / "empty.ply"), "--gt", str(files / "gt.ply"), "--samples", "1000",
@@ -67,6 +87,8 @@ def test_evaluate_empty_mesh_is_a_counted_failure(files, capsys):
     (["recon.ply", "--gt", "empty.ply"], "empty.ply: holds no triangles"),
     (["recon.ply", "--gt", "gt.ply", "--pseudo-gt-mm", "1"], "--pseudo-gt-mm needs --points"),
     (["recon.ply", "--gt", "gt.ply", "--samples", "0"], "--samples"),
+    (["recon.ply", "--gt", "gt.ply", "--within-mm", "-1"], "--within-mm: must be a finite number ≥ 0 mm"),
+    (["recon.ply", "--gt", "gt.ply", "--within-mm", "nan"], "--within-mm: must be a finite number ≥ 0 mm"),
 ])
 def test_evaluate_bad_input_exits_2_naming_the_problem(files, capsys, monkeypatch, args, message):
     monkeypatch.chdir(files)

@@ -9,6 +9,7 @@ import trimesh
 from ultraboneudf.errors import InputError
 from ultraboneudf.evaluation import (
     JSON_KEYS,
+    SHARE_KEYS,
     DegenerateMeshError,
     chamfer_hd95,
     evaluate,
@@ -189,6 +190,45 @@ def test_json_keys_are_exactly_those_of_the_design():
                         "samples", "pseudo_gt_mm"]
     assert js["samples"] == 5000 and js["pseudo_gt_mm"] is None
     assert all(isinstance(js[k], float) for k in JSON_KEYS[:6])
+
+
+def test_shares_within_a_distance_on_analytic_geometry():
+    gt = square(10.0, 0.0, 4)
+    # the square and an equal one 5 mm above it: half the area on the ground truth, all of it covered
+    two = trimesh.util.concatenate([square(10.0, 0.0, 4), square(10.0, 5.0, 4)])
+    r = evaluate(two, gt, samples=N, within_mm=1.0)
+    assert r.on_gt == pytest.approx(0.5, abs=0.01) and r.covered == 1.0
+    # the left half of the square: all of it on the ground truth, which is covered up to x = 5 + 1 mm
+    half = trimesh.Trimesh(gt.vertices * [0.5, 1, 1], gt.faces)
+    r = evaluate(half, gt, samples=N, within_mm=1.0)
+    assert r.on_gt == 1.0 and r.covered == pytest.approx(0.6, abs=0.01)
+    # the square 0.5 mm above: everything within 1 mm, nothing within 0.4 mm
+    for within, share in ((1.0, 1.0), (0.4, 0.0)):
+        r = evaluate(square(10.0, 0.5, 4), gt, samples=20_000, within_mm=within)
+        assert r.on_gt == share and r.covered == share and r.within_mm == within
+    assert list(r.to_json()) == list(JSON_KEYS + SHARE_KEYS)
+    assert evaluate(square(10.0, 0.5, 4), gt, samples=5000).on_gt is None  # not asked for
+    with pytest.raises(InputError, match="share distance"):
+        evaluate(square(), gt, samples=1000, within_mm=-1.0)
+
+
+def test_share_on_the_ground_truth_measures_to_the_whole_of_it():
+    # the raw cloud sees the left half (x ≤ 4.75), so the pseudo GT is x ≤ 5.75; the reconstruction is
+    # the right half: all of it on the ground truth, which only the pseudo GT's strip x ≥ 4.5 is near
+    gt = square(10.0, 0.0, 4)
+    g = np.arange(0.0, 5.0, 0.25)
+    raw = np.stack(np.meshgrid(g, np.arange(0.0, 10.01, 0.25), indexing="ij"), -1).reshape(-1, 2)
+    raw = np.c_[raw, np.zeros(len(raw))]
+    right = trimesh.Trimesh(gt.vertices * [0.5, 1, 1] + [5.0, 0, 0], gt.faces)
+    r = evaluate(right, gt, raw_points=raw, pseudo_gt_mm=1.0, samples=N, within_mm=0.5)
+    assert r.on_gt == 1.0 and r.covered == pytest.approx((5.75 - 4.5) / 5.75, abs=0.01)
+    kept = prepare_ground_truth(gt, raw, pseudo_gt_mm=1.0, samples=N, keep_whole=True)
+    again = evaluate(right, kept, within_mm=0.5)
+    assert (again.on_gt, again.covered, again.cd_mm) == (r.on_gt, r.covered, r.cd_mm)
+    with pytest.raises(InputError, match="keep_whole"):
+        evaluate(right, prepare_ground_truth(gt, raw, pseudo_gt_mm=1.0, samples=N), within_mm=0.5)
+    failed = evaluate(None, kept, within_mm=0.5).to_json()
+    assert failed["within_mm"] == 0.5 and failed["on_gt"] is None and failed["covered"] is None
 
 
 def test_same_seed_same_numbers_and_prepared_ground_truth_reuse():

@@ -25,6 +25,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pseudo-gt-mm", type=float, default=None, metavar="T",
                    help="pseudo-GT threshold τ in mm (default 2, as the paper; the official code uses 1); "
                         "needs --points")
+    p.add_argument("--within-mm", type=float, default=None, metavar="T",
+                   help="also the shares within T mm, as real data is scored against CT: of the "
+                        "reconstruction's area near the whole ground-truth mesh (on_gt; what it invented "
+                        "lies farther) and of the (pseudo) ground truth near the reconstruction (covered; "
+                        "what it missed lies farther); --json then adds within_mm, on_gt and covered")
     p.add_argument("--samples", type=int, default=5_000_000, metavar="N",
                    help="points sampled on each surface (default 5,000,000 as the reference code)")
     p.add_argument("--seed", type=int, default=0, help="seed of the surface sampling (default 0)")
@@ -40,6 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import json
+    import math
 
     from ..io import check_input, check_output, load_mesh, load_points, read_mesh, record, sha256_file, write_output
 
@@ -49,6 +55,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--pseudo-gt-mm needs --points (the raw ultrasound cloud to filter by)")
     if args.pseudo_gt_mm is not None and not args.pseudo_gt_mm >= 0:
         raise InputError(f"--pseudo-gt-mm: must be ≥ 0 mm, got {args.pseudo_gt_mm}")
+    if args.within_mm is not None and not (math.isfinite(args.within_mm) and args.within_mm >= 0):
+        raise InputError(f"--within-mm: must be a finite number ≥ 0 mm, got {args.within_mm}")
     inputs = [p for p in (args.recon, args.gt, args.points) if p]
     if args.json:
         check_output(args.json, inputs=inputs, overwrite=args.overwrite)
@@ -63,10 +71,11 @@ def run(args: argparse.Namespace) -> int:
 
     progress = Progress(quiet=args.quiet)
     result = evaluate(recon, gt, raw_points=raw, pseudo_gt_mm=args.pseudo_gt_mm, samples=args.samples,
-                      seed=args.seed, device=args.device, progress=progress, gt_source=str(args.gt))
+                      seed=args.seed, device=args.device, progress=progress, gt_source=str(args.gt),
+                      within_mm=args.within_mm)
     if args.json:
         meta = record("evaluate", inputs={str(p): sha256_file(p) for p in inputs}, samples=args.samples,
-                      seed=args.seed, pseudo_gt_mm=result.pseudo_gt_mm)
+                      seed=args.seed, pseudo_gt_mm=result.pseudo_gt_mm, within_mm=args.within_mm)
         write_output(args.json, (json.dumps(result.to_json(), indent=2) + "\n").encode("utf-8"), meta,
                      overwrite=args.overwrite)
     tau = "whole ground truth" if result.pseudo_gt_mm is None else f"pseudo-GT τ = {result.pseudo_gt_mm:g} mm"
@@ -80,6 +89,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"d_GR  mean {result.d_gr_mean_mm:.4f} mm, P95 {result.hd95_gr_mm:.4f} mm")
     print(f"HD95 alternatives: P95 of pooled distances {result.hd95_union_mm:.4f} mm, "
           f"mean of directed P95 {result.hd95_mean_mm:.4f} mm")
+    if result.within_mm is not None:
+        scored = "the whole ground truth" if result.pseudo_gt_mm is None else "the pseudo ground truth"
+        print(f"within {result.within_mm:g} mm: {result.on_gt:.3f} of the mesh area near the ground-truth mesh "
+              f"(on_gt), {result.covered:.3f} of {scored} near the mesh (covered)")
     print(f"samples {result.samples:,} per surface, {result.samples_gt:,} ground-truth samples kept "
           f"({tau}), seed {result.seed}, {result.timings.get('total_s', 0.0):.1f} s on {result.device}")
     q = mesh_quality(recon)
