@@ -106,8 +106,8 @@ def test_reconstruct_many_equals_reconstruct(preset):
         theta = rng.uniform(np.pi / 4, 3 * np.pi / 4, 3000)
         clouds.append(np.c_[r * np.cos(theta), rng.uniform(0, 40, 3000), r * np.sin(theta)])
     # as test_pipeline.py but 800 steps, extracted at depth 6 (1.25 mm cells): a field trained for
-    # fewer steps, or meshed finer, is perforated near the rims, and which small holes open is fp32
-    # noise (at 400 steps the two meshes of one patch differed by 9% in area on one CPU)
+    # fewer steps, or meshed finer, is perforated near the rims, and which small holes open (and so
+    # the area) follows the CPU's fp32 rounding
     small = {"train.iters": 800, "train.batch": 1000, "train.warmup": 50, "extract.max_depth": 6,
              "data.max_points": 3000, "model.hidden": (64, 64, 64)}
     many = ultraboneudf.reconstruct_many(clouds, preset=preset, device="cpu", seed=1, **small)
