@@ -8,7 +8,7 @@ Inputs (paths given on the command line, mm, each in the frame of its CT):
   al., luohwu/NeuralBoneReg-implementation at commit 57d07b0, docs/real_data.md) are laid out so.
   ``--points N`` runs each as a random subset of N of its points (case ``NAME/Npts``): a sparser
   cloud of the same bone, as a user whose compounding kept fewer points has; ``--cloud-frame-step
-  K`` as every K-th of its frames (``frames_in_order``; case ``NAME/every_K``): a sweep with fewer
+  K`` as every K-th of its frames (``frames_from_order``; case ``NAME/every_K``): a sweep with fewer
   frames.
 * ``--sweep DIR --ct MESH``: a tracked sweep and the CT of one bone it images, e.g. the whole sweep of
   the public UltraBones100k repository (``CT-US bone alignment optimization/record_folder``: its
@@ -78,8 +78,6 @@ PSEUDO_GT_MM = 2.0
 ON_BONE_MM = 2.0
 CT_SAMPLES = 2_000_000
 GROUP_LINK_MM = 2.0
-FRAME_PLANE_MM = 0.02   # consecutive points this close to one plane are one frame's
-FRAME_MIN_POINTS = 5
 COLUMNS = ["case", "variant", "method", "preset", "cd_mm", "hd95_mm", "on_bone", "covered", "pieces", "off_mm2",
            "far_mm2", "time_s"]
 
@@ -136,36 +134,9 @@ class Truth:
         return out
 
 
-def frames_in_order(points: np.ndarray) -> np.ndarray:
-    """(N,) the frame of each of ``points`` (N, 3) for a cloud that keeps each frame's points
-    together: runs of at least ``FRAME_MIN_POINTS`` consecutive points within ``FRAME_PLANE_MM`` of
-    one plane; -1 for points in no such run."""
-    p = np.asarray(points, dtype=np.float64)
-    label = np.full(len(p), -1)
-    start, frame = 0, 0
-    while start < len(p) - 3:
-        end = start + 3
-        centre = p[start:end].mean(axis=0)
-        _, spread, axes = np.linalg.svd(p[start:end] - centre)
-        if spread[1] < 1e-3:  # three points on a line fix no plane
-            start += 1
-            continue
-        normal = axes[2]
-        while end < len(p) and abs((p[end] - centre) @ normal) < FRAME_PLANE_MM:
-            end += 1
-            if (end - start) & (end - start - 1) == 0:  # refit at powers of two: the plane of the run
-                centre = p[start:end].mean(axis=0)
-                normal = np.linalg.svd(p[start:end] - centre)[2][2]
-        if end - start >= FRAME_MIN_POINTS:
-            label[start:end] = frame
-            frame, start = frame + 1, end
-        else:
-            start += 1
-    return label
-
-
 def frame_beams(points: np.ndarray, label: np.ndarray) -> np.ndarray:
-    """(N, 3) each point's beam as estimated from its frame (``label`` from :func:`frames_in_order`):
+    """(N, 3) each point's beam as estimated from its frame (``label`` from
+    :func:`~ultraboneudf.geometry.frame_order.frames_from_order`):
     the second principal axis of the frame's points, within its plane across the bone's curve; zero
     rows for points in no frame. Unsigned."""
     beams = np.zeros((len(points), 3))
@@ -224,7 +195,9 @@ def describe(points: np.ndarray, truth: Truth, probe: np.ndarray | None = None) 
     if probe is not None:
         out["beams"], beams = "probe", points - probe
     else:
-        label = frames_in_order(points)
+        from ultraboneudf.geometry.frame_order import frames_from_order
+
+        label = frames_from_order(points)
         in_order = np.mean(label >= 0) >= 0.5  # a cloud that keeps its frames' points together
         out["beams"], beams = ("frames", frame_beams(points, label)) if in_order else (None, None)
     if beams is not None:
@@ -267,8 +240,11 @@ def sparser(points: np.ndarray, n: int) -> np.ndarray:
 
 def every_kth_frame(points: np.ndarray, k: int) -> np.ndarray:
     """The points of every ``k``-th frame of a compounded cloud that keeps each frame's points
-    together (:func:`frames_in_order`), in their order; the points in no frame are left out."""
-    label = frames_in_order(points)
+    together (:func:`~ultraboneudf.geometry.frame_order.frames_from_order`), in their order; the
+    points in no frame are left out."""
+    from ultraboneudf.geometry.frame_order import frames_from_order
+
+    label = frames_from_order(points)
     return points[(label >= 0) & (label % k == 0)]
 
 

@@ -441,3 +441,27 @@ def test_with_the_data_margin_the_extractor_meshes_a_field_that_stays_above_zero
     mesh = extract_mesh(Lifted(), raised)
     assert mesh is not None and abs(mesh.area - 4.0) < 0.02, None if mesh is None else mesh.area
     assert np.abs(mesh.vertices[:, 2]).max() < 0.5 * 2.0 / 2**6  # within half a leaf of z = 0
+
+
+def test_a_cloud_written_frame_by_frame_row_by_row_tells_its_beams():
+    """The mask pixels of a shaft's upper arc, 15 frames listed row by row from the probe down (as a
+    compounding writes them): the robust preset takes the beams of all 15 for the false echoes'
+    side; the same cloud in another order, or with the option off, tells none."""
+    import sys
+    from pathlib import Path
+
+    from ultraboneudf.config.presets import preset
+    from ultraboneudf.preprocess import prepare
+
+    sys.path.insert(0, str(Path(__file__).parent / "geometry"))
+    from test_frame_order import mask_frames
+
+    frames, _ = mask_frames()
+    pts = np.concatenate(frames)
+    _, unit = prepare(pts, preset("robust"), seed=0)
+    assert unit.order_frames == len(frames)
+    shuffled = pts[np.random.default_rng(0).permutation(len(pts))]
+    assert prepare(shuffled, preset("robust"), seed=0)[1].order_frames == 0
+    off = preset("robust")
+    off.data.beams_from_order = False
+    assert prepare(pts, off, seed=0)[1].order_frames == 0

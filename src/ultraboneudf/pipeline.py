@@ -453,7 +453,8 @@ def _finish(surface: FittedSurface, progress: Progress) -> Reconstruction:
     timings["total_s"] = time.perf_counter() - surface.started
     counts = {"input_points": unit.input_points, "voxelized_points": len(unit.points) + unit.outliers,
               "voxel_size_mm": unit.voxel_mm, "plane_radius_mm": unit.plane_radius_mm,
-              "outliers_removed": unit.outliers, "frames": unit.frames, "extract_depth": extract_cfg.max_depth,
+              "outliers_removed": unit.outliers, "frames": unit.frames,
+              "order_frames": unit.order_frames, "extract_depth": extract_cfg.max_depth,
               "extract_margin": extract_cfg.margin, "trim_normal_mm": extract_cfg.trim_normal_mm,
               **fitted.counts,
               "vertices": 0 if mesh is None else len(mesh.vertices),

@@ -21,6 +21,7 @@ import numpy as np
 from .config import Config, DataConfig
 from .errors import InputError
 from .geometry.echo_layers import false_echoes
+from .geometry.frame_order import beams_from_order, frames_from_order
 from .geometry.frames import frame_axes, sweep_ends
 from .geometry.normalize import Normalizer
 from .geometry.data_surface import DataSurface
@@ -32,6 +33,8 @@ from .io import check_units, validate_points
 # their beam: a neighbouring scan line meets a face 80° from the beam up to about 3 mm higher
 # within the shadow test's half millimetre of it (geometry.surface_fit.steep_echoes).
 _STEEP_ECHO_SHADOW_MM = 3.0
+# A cloud whose order tells the beams of fewer of its points than this was not written frame by frame.
+_ORDER_MIN_SHARE = 0.1
 
 
 @dataclass
@@ -101,6 +104,7 @@ class UnitCloud:
     input_points: int
     outliers: int               # points the local-plane stage dropped
     frames: int                 # distinct sweep frames given with the points (0: none given)
+    order_frames: int           # frames whose beam the cloud's order told (0: none, or not asked)
     voxel_mm: float             # the voxel edge used (data.voxel_size_mm, or coarser: data.max_voxels)
     plane_radius_mm: float      # the local planes' first radius (data.surface_fit_mm, or wider where sparse)
     voxel_s: float
@@ -130,28 +134,38 @@ def prepare(points_mm: Any, cfg: Config, seed: int, source: str = "points", prob
 
 def to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int,
             source: str = "points", frames: np.ndarray | None = None) -> UnitCloud:
-    """Optional test noise, voxel mean (the :class:`PointAttributes` follow their points), the
+    """The beams a cloud without probe positions tells by its order (``data.beams_from_order``),
+    optional test noise, voxel mean (the :class:`PointAttributes` and beams follow their points), the
     local-plane stage in mm (outliers dropped, points moved onto their planes, normals kept), and
     the one normalisation into unit space."""
     t0 = time.perf_counter()
     d = cfg.data
     n_input = len(points)
+    beams, order_frames = None, 0
+    if probe is None and d.beams_from_order and d.front_echo_mm > 0 and d.surface_fit_mm > 0:
+        order = frames_from_order(points)
+        beams = beams_from_order(points, order)
+        told = np.any(beams != 0, axis=1)
+        # a few runs by chance in a cloud that was not written frame by frame tell nothing
+        order_frames = len(np.unique(order[told])) if told.mean() >= _ORDER_MIN_SHARE else 0
+        beams = beams if order_frames else None
     if d.noise_sigma_mm > 0:
         points = points + np.random.default_rng(seed + 1).normal(0.0, d.noise_sigma_mm, points.shape)
     attrs = None
     if probe is not None:
         attrs = PointAttributes.of_sweep(points, probe, frames if frames is not None and d.frame_bridge > 0 else None)
     voxel = d.voxel_size_mm
-    voxelised, voxel_attrs = _voxel_mean(points, attrs, voxel)
+    voxelised, voxel_attrs, voxel_beams = _voxel_mean(points, attrs, beams, voxel)
     while d.max_voxels and len(voxelised) > d.max_voxels and voxel > 0:
         # a surface's voxel count falls with the square of the edge; 1.2× at least, so it converges
         voxel *= max(1.2, float(np.sqrt(len(voxelised) / d.max_voxels)))
-        voxelised, voxel_attrs = _voxel_mean(points, attrs, voxel)
+        voxelised, voxel_attrs, voxel_beams = _voxel_mean(points, attrs, beams, voxel)
     t1 = time.perf_counter()
     planes, outliers, radius = None, 0, 0.0
     if d.surface_fit_mm > 0:
         radius = radius_for_density(voxelised, d.surface_fit_mm, d.surface_fit_points)
-        voxelised, voxel_attrs, planes, outliers = local_plane_stage(voxelised, voxel_attrs, d, source, radius)
+        voxelised, voxel_attrs, planes, outliers = local_plane_stage(voxelised, voxel_attrs, d, source, radius,
+                                                                     voxel_beams)
         if voxel_attrs is not None and voxel_attrs.with_frames:
             a = voxel_attrs.settled()
             planes = dataclasses.replace(planes, frame_axis=a.frame_axis, frame_order=a.frame_order,
@@ -164,29 +178,35 @@ def to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int
                      probe=None if voxel_attrs is None else normalizer.forward(voxel_attrs.probe),
                      planes=None if planes is None else planes.scaled(1.0 / normalizer.scale),
                      normalizer=normalizer, input_points=n_input, outliers=outliers,
-                     frames=0 if frames is None else len(np.unique(frames)), voxel_mm=voxel,
+                     frames=0 if frames is None else len(np.unique(frames)), order_frames=order_frames,
+                     voxel_mm=voxel,
                      plane_radius_mm=radius,
                      voxel_s=t1 - t0, surface_fit_s=time.perf_counter() - t1)
 
 
-def _voxel_mean(points: np.ndarray, attrs: PointAttributes | None, voxel: float
-                ) -> tuple[np.ndarray, PointAttributes | None]:
-    """Voxel mean of the points (mm); each voxel's attributes are the mean of its points'."""
-    if attrs is None:
-        return voxel_downsample(points, voxel), None
-    voxelised, columns = voxel_downsample_with(points, attrs.columns(), voxel)
-    return voxelised, PointAttributes.from_columns(columns)
+def _voxel_mean(points: np.ndarray, attrs: PointAttributes | None, beams: np.ndarray | None, voxel: float
+                ) -> tuple[np.ndarray, PointAttributes | None, np.ndarray | None]:
+    """Voxel mean of the points (mm); each voxel's attributes (and beams) are the mean of its points'."""
+    if attrs is not None:
+        voxelised, columns = voxel_downsample_with(points, attrs.columns(), voxel)
+        return voxelised, PointAttributes.from_columns(columns), None
+    if beams is not None:
+        voxelised, beams = voxel_downsample_with(points, beams, voxel)
+        return voxelised, None, beams
+    return voxel_downsample(points, voxel), None, None
 
 
 def local_plane_stage(points: np.ndarray, attrs: PointAttributes | None, d: DataConfig, source: str,
-                      radius: float) -> tuple[np.ndarray, PointAttributes | None, LocalPlanes, int]:
+                      radius: float, beams: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, PointAttributes | None, LocalPlanes, int]:
     """Robust local planes of the voxelised ``points`` (N, 3) mm at ``radius`` mm
     (``data.surface_fit_mm``, or the wider one :func:`radius_for_density` gives a sparse cloud),
     ``data.denoise`` times (at least once): drop the false echo layers (``front_echo_mm``,
     ``min_component``) and the outliers (``outlier_sigmas``), move the points onto their planes
     (``denoise``), drop the echoes in the shadow of others along their beam (``shadow_mm``; needs
-    the probe positions). Returns the points, their attributes, their last planes and the number
-    dropped."""
+    the probe positions). ``beams`` (N, 3): those a cloud without probe positions tells by its
+    order (:mod:`~ultraboneudf.geometry.frame_order`), for the false echoes' side. Returns the
+    points, their attributes, their last planes and the number dropped."""
     planes, dropped = None, 0
     for _ in range(max(1, d.denoise)):
         view = None
@@ -195,7 +215,7 @@ def local_plane_stage(points: np.ndarray, attrs: PointAttributes | None, d: Data
             view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
         planes = fit_local_planes(points, radius, view=view, steep_deg=d.steep_planes_deg)
         keep = ~false_echoes(points, planes, view, depth=d.front_echo_mm, ratio=d.front_echo_ratio,
-                             fraction=d.min_component)
+                             fraction=d.min_component, beams=beams)
         if d.outlier_sigmas > 0:
             spare = None if view is None else steep_echoes(points, view, planes, _STEEP_ECHO_SHADOW_MM)
             keep &= ~planes.outliers(d.outlier_sigmas, 0.1 * radius, spare)
@@ -210,6 +230,7 @@ def local_plane_stage(points: np.ndarray, attrs: PointAttributes | None, d: Data
         dropped += int((~keep).sum())
         points, planes = points[keep], planes.subset(keep)
         attrs = None if attrs is None else attrs.subset(keep)
+        beams = None if beams is None else beams[keep]
     return points, attrs, planes, dropped
 
 

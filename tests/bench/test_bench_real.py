@@ -80,15 +80,6 @@ def _slices(rng, count=12, per=60, radius=12.0):
     return frames
 
 
-def test_frames_are_found_from_the_points_order(bench_real):
-    frames = _slices(np.random.default_rng(0))
-    label = bench_real.frames_in_order(np.concatenate(frames))
-    assert (label >= 0).mean() > 0.98
-    assert len(np.unique(label[label >= 0])) == len(frames)
-    shuffled = np.concatenate(frames)[np.random.default_rng(1).permutation(sum(map(len, frames)))]
-    assert (bench_real.frames_in_order(shuffled) >= 0).mean() < 0.1  # no frames in another order
-
-
 def test_oblique_faces_offset_by_incidence(bench_real, tmp_path):
     """Points pushed out of a cylinder by 2 × (1 − cos incidence): the by-incidence medians follow,
     with the beam known (straight down) and estimated from the frames."""

@@ -94,6 +94,39 @@ def test_with_probe_positions_the_front_is_the_probes_side():
     assert not drop[20_400:].any()
 
 
+def hollow_beside_a_shaft(seed=6):
+    """A shaft (convex, the larger part) and beside it a trough seen from inside (a hollow of the
+    bone, concave toward the probe above), a fainter sheet 6 mm over the trough's floor, toward the
+    probe; every point imaged looking down −z. Returns the cloud, the sheet's rows and the beams."""
+    rng = np.random.default_rng(seed)
+    bone, _ = shaft(n=20_000)
+    a = np.radians(rng.uniform(-60, 60, 6_000))
+    trough = np.c_[rng.uniform(-40, 40, 6_000), 80 + 15 * np.sin(a), 20 - 15 * np.cos(a)]
+    trough[:, 2] += rng.normal(0.0, 0.4, len(trough))
+    sheet = np.c_[rng.uniform(-15, 15, 400), rng.uniform(76, 84, 400), np.full(400, 11.0)]
+    cloud = np.r_[bone, trough, sheet]
+    return cloud, np.arange(len(bone) + len(trough), len(cloud)), np.tile([0.0, 0.0, -1.0], (len(cloud), 1))
+
+
+def test_the_beams_a_clouds_order_tells_give_the_front_in_a_hollow():
+    """The convexity rule looks into a hollow's floor and keeps the sheet over it; the beams find
+    it in front. Beams listed from the far end are turned; beams lying along the surface (another
+    order) are not beams, and convexity decides."""
+    cloud, sheet, beams = hollow_beside_a_shaft()
+    bone = np.setdiff1d(np.arange(len(cloud)), sheet)
+    planes = fit_local_planes(cloud, 4.0)
+    rule = dict(depth=30.0, ratio=2.0)
+    convex = false_echoes(cloud, planes, None, **rule)
+    assert convex[sheet].mean() < 0.5
+    for told in (beams, -beams):
+        drop = false_echoes(cloud, planes, None, beams=told, **rule)
+        assert drop[sheet].mean() > 0.95 and drop[bone].mean() < 0.01
+    along = np.tile([1.0, 0.0, 0.0], (len(cloud), 1))  # the shaft's axis: along every plane here
+    assert np.array_equal(false_echoes(cloud, planes, None, beams=along, **rule), convex)
+    unknown = false_echoes(cloud, planes, None, beams=np.zeros_like(cloud), **rule)
+    assert np.array_equal(unknown, convex)
+
+
 def test_small_components_are_the_groups_smaller_than_a_share_of_the_largest():
     rng = np.random.default_rng(5)
     big = rng.uniform(0, 50, (5_000, 3)) * [1, 1, 0]

@@ -119,6 +119,7 @@ def _robust() -> Config:
     cfg.data.rim_reach = 0.5
     cfg.data.steep_planes_deg = 80.0
     cfg.data.front_echo_mm = 30.0
+    cfg.data.beams_from_order = True
     cfg.data.min_component = 0.02
     cfg.loss.distance_target = "surface"
     cfg.loss.lambda_os = 10.0

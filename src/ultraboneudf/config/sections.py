@@ -106,6 +106,11 @@ class DataConfig(_Section):
     where the points' probe positions are known, else the side away from which the bone bends
     (bone is mostly convex); echoes behind a layer are kept (both faces of a thin plate of bone are
     bone). Needs ``surface_fit_mm``; 0 = keep them."""
+    beams_from_order: bool = False
+    """``front_echo_mm`` on a cloud without probe positions: take the probe's side from the beams the
+    cloud's own order tells, where it was written frame by frame, each frame's points row by row
+    from the probe down (:mod:`~ultraboneudf.geometry.frame_order`); the side from the bone's bend
+    where it tells none. False = always from the bend."""
     front_echo_ratio: float = 2.0
     """``front_echo_mm``: how many times denser the bone's layer must be than an echo's own layer (±1 mm
     along the column) for the echo to count as lying in front of it."""

@@ -22,7 +22,13 @@ bone's side:
    whatever bone other beams saw behind it, as in the hollows of a small bone). A compounded cloud has none; bone, seen from outside, is mostly convex, so the front of a
    representative's plane is the side away from which its neighbours within ``convexity`` bend (the
    median height of the representatives around it above its plane is negative), made consistent
-   with its neighbours' choice within ``2 × spacing`` by a majority vote.
+   with its neighbours' choice within ``2 × spacing`` by a majority vote. A cloud that kept its
+   frames' order tells its beams (:mod:`~ultraboneudf.geometry.frame_order`): there the front is
+   the side the beams of the points around the representative come from, and convexity decides
+   only where they tell nothing or graze its plane (the same vote follows). Beams that lie mostly
+   along the surface are not beams (the order was another one) and are ignored; beams from which
+   most representatives' front would be the other side than convexity's come from a cloud listed
+   from the far end of its beams, and are turned.
 3. **Detached clusters.** What is left is split into groups linked by gaps under ``link``; groups
    with fewer points than ``fraction`` of the largest are dropped (clusters of echoes floating in
    the soft tissue, which no column reached), unless they hold echoes of a steep face (a sweep's
@@ -54,17 +60,22 @@ _BEAM_TOLERANCE = 1.0  # mm: how near its beam the bone under a sweep's false ec
 _ALONG_DEG = 35.0     # a detached group within this of the kept surface's plane continues it
 _SURFACE_REACH = 2.5  # × the groups' link: the extent of the kept surface's plane a group is held to
 _SLICE_MM = 0.5       # mm: a group thinner than this across its own plane lies in one image plane
+_BEAM_NEIGHBOURS = 8  # a representative's front: the beams of this many points nearest to it
+_BEAM_MAX_DEG = 60.0  # beams further than this from a plane's normal graze it; mostly so: not beams
 
 
 def false_echoes(points: np.ndarray, planes: LocalPlanes, view: np.ndarray | None, *, depth: float,
-                 ratio: float, votes: int = 2, fraction: float = 0.0) -> np.ndarray:
+                 ratio: float, votes: int = 2, fraction: float = 0.0, beams: np.ndarray | None = None
+                 ) -> np.ndarray:
     """(N,) bool: the false echoes among ``points`` (N, 3) with their local ``planes``
     (:func:`~ultraboneudf.geometry.surface_fit.fit_local_planes`): those in front of a denser layer
     (``depth`` > 0; counted by ``votes`` columns, ``ratio``: how much denser) and, with ``fraction``
     > 0, the detached clusters left but for those holding a steep plane's points (a steep face
     returns a few echoes apart from the rest of a small bone; only sweeps have steep planes) and
     those of at least the planes' median point count that continue the kept surface in its plane.
-    ``view`` (N, 3): unit directions probe → point where known.
+    ``view`` (N, 3): unit directions probe → point where known. ``beams`` (N, 3): without ``view``,
+    the beams a compounded cloud's order tells (zero rows where it tells none), for the columns'
+    front only.
     The columns' radius and the least height in front are the planes' first radius and three
     quarters of it (the band of a bone's echoes is about that thick), representatives are spaced at
     half of it, and clusters are linked across gaps under it."""
@@ -82,6 +93,8 @@ def false_echoes(points: np.ndarray, planes: LocalPlanes, view: np.ndarray | Non
                     np.einsum("ij,ij->i", planes.normal[reps], view[reps]) > 0, -1.0, 1.0)[:, None]
             else:
                 front = front_orientation(pts[reps], planes.normal[reps], _CONVEXITY, radius)
+                if beams is not None:
+                    front = beam_front(pts, reps, front, beams, radius)
             out = in_front_of_denser_layer(pts, reps, front, depth=depth, lateral=radius,
                                            gap=0.75 * radius, ratio=ratio) >= votes
             if view is not None:
@@ -128,6 +141,38 @@ def front_orientation(points: np.ndarray, normals: np.ndarray, convexity: float,
                             minlength=len(points))
         out = out * np.where(agree < 0, -1.0, 1.0)[:, None]
     return out
+
+
+def beam_front(points: np.ndarray, reps: np.ndarray, convex: np.ndarray, beams: np.ndarray,
+               consensus: float) -> np.ndarray:
+    """(R, 3): the front of each representative ``reps`` (R,) of ``points`` (N, 3) from the
+    ``beams`` (N, 3; zero where unknown) of its nearest points: its normal turned against their
+    sum; ``convex`` (R, 3), the convexity rule's front, where they tell nothing or meet the plane at
+    more than ``_BEAM_MAX_DEG``, and for all of them when the beams are not beams (module
+    docstring); then the neighbours' vote within ``consensus``."""
+    _, near = kd_tree(points).query(points[reps], k=min(_BEAM_NEIGHBOURS, len(points)), workers=-1)
+    summed = beams[near.reshape(len(reps), -1)].sum(axis=1)
+    length = np.linalg.norm(summed, axis=1)
+    towards = np.einsum("ij,ij->i", convex, summed)  # > 0: the beams run along convexity's front
+    incidence = np.abs(towards) / np.maximum(length, 1e-12)
+    steep = np.cos(np.radians(_BEAM_MAX_DEG))
+    told = length > 0
+    if not told.any() or np.median(incidence[told]) < steep:
+        return convex
+    # a grazing beam's side turns with a few degrees' error of the beam or of the plane
+    told &= incidence >= steep
+    if not told.any():
+        return convex
+    against = towards > 0
+    if np.mean(against[told]) > 0.5:  # most beams run out of the bone: listed from the far end
+        against = ~against
+    front = np.where((told & against)[:, None], -convex, convex)
+    owner, other = _pairs(kd_tree(points[reps]).query_ball_point(points[reps], consensus, workers=-1))
+    for _ in range(_CONSENSUS_ROUNDS):
+        agree = np.bincount(owner, weights=np.einsum("ij,ij->i", front[owner], front[other]),
+                            minlength=len(reps))
+        front = front * np.where(agree < 0, -1.0, 1.0)[:, None]
+    return front
 
 
 def in_front_of_denser_layer(points: np.ndarray, reps: np.ndarray, front: np.ndarray, *, depth: float,

@@ -1,0 +1,95 @@
+"""A compounded cloud's frames and beams, from the order of its points.
+
+A cloud compounded from a tracked sweep and written frame by frame keeps each frame's points
+together: a run of consecutive points lies exactly in one plane, the frame's image plane. Written as
+a bone mask's pixels are listed, row by row from the probe down, the run also tells the frame's
+beam: within an image row consecutive points step exactly along the probe's face (many steps share
+that one direction), and from row to row the depth only grows. So each frame gives the line of its
+beam and the side of its probe, the two things a compounded cloud otherwise lacks.
+
+Nothing here assumes the order holds: a cloud in any other order yields no runs or no beams
+(:func:`frames_from_order` finds no plane, :func:`beams_from_order` no shared step), and the caller
+checks the beams it gets against the surface before it uses them
+(:func:`~ultraboneudf.geometry.echo_layers.false_echoes`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+FRAME_PLANE_MM = 0.02   # consecutive points this close to one plane are one frame's
+FRAME_MIN_POINTS = 5
+_ROW_TOLERANCE_DEG = 0.5  # steps within an image row share their direction to this
+_FLAT_MM = 1e-3           # a run whose depth never changes more than this is one row: no side
+
+
+def frames_from_order(points: np.ndarray, plane_mm: float = FRAME_PLANE_MM,
+                      min_points: int = FRAME_MIN_POINTS) -> np.ndarray:
+    """(N,) int: the frame of each of ``points`` (N, 3, mm, in the cloud's order): runs of at least
+    ``min_points`` consecutive points within ``plane_mm`` of one plane, numbered in order; -1 for
+    points in no such run."""
+    p = np.asarray(points, dtype=np.float64)
+    label = np.full(len(p), -1)
+    start, frame = 0, 0
+    while start < len(p) - 3:
+        end = start + 3
+        centre = p[start:end].mean(axis=0)
+        _, spread, axes = np.linalg.svd(p[start:end] - centre)
+        if spread[1] < 1e-3:  # three points on a line fix no plane
+            start += 1
+            continue
+        normal = axes[2]
+        while end < len(p) and abs((p[end] - centre) @ normal) < plane_mm:
+            end += 1
+            if (end - start) & (end - start - 1) == 0:  # refit at powers of two: the plane of the run
+                centre = p[start:end].mean(axis=0)
+                normal = np.linalg.svd(p[start:end] - centre)[2][2]
+        first = start
+        while first > 0 and label[first - 1] < 0 and abs((p[first - 1] - centre) @ normal) < plane_mm:
+            first -= 1  # the frame's first points, on one line (an image row), fixed no plane alone
+        if end - first >= min_points:
+            label[first:end] = frame
+            frame, start = frame + 1, end
+        else:
+            start += 1
+    return label
+
+
+def beams_from_order(points: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """(N, 3): each point's beam, the unit direction from the probe into the tissue, from its frame
+    (``frames`` from :func:`frames_from_order`) listed row by row (module docstring); zero rows where
+    the frame tells none: in no frame, no two steps along one row, or one row only (no depth)."""
+    p = np.asarray(points, dtype=np.float64)
+    beams = np.zeros_like(p)
+    frames = np.asarray(frames)
+    order = np.argsort(frames, kind="stable")
+    cuts = np.flatnonzero(np.diff(frames[order])) + 1
+    for rows in np.split(order, cuts):
+        if frames[rows[0]] >= 0 and len(rows) >= 3:
+            beams[rows] = frame_beam(p[rows])
+    return beams
+
+
+def frame_beam(points: np.ndarray) -> np.ndarray:
+    """(3,) the beam of one frame's ``points`` (M, 3, in their order; module docstring), or zeros."""
+    centred = points - points.mean(axis=0)
+    e1, e2, normal = np.linalg.svd(centred, full_matrices=False)[2]
+    steps = np.diff(centred, axis=0)
+    x, y = steps @ e1, steps @ e2
+    moving = np.hypot(x, y) > 1e-9
+    if moving.sum() < 2:
+        return np.zeros(3)
+    angle = np.sort(np.degrees(np.arctan2(y[moving], x[moving])) % 180.0)
+    wrapped = np.concatenate([angle, angle + 180.0])
+    # how many step directions lie within the tolerance above each: the row's direction is the most shared
+    shared = np.searchsorted(wrapped, angle + _ROW_TOLERANCE_DEG, side="right") - np.arange(len(angle))
+    first = int(np.argmax(shared))
+    if shared[first] < 2:
+        return np.zeros(3)
+    row = np.radians(np.median(wrapped[first:first + shared[first]]))
+    beam = np.cross(normal, np.cos(row) * e1 + np.sin(row) * e2)
+    depth = steps @ beam
+    down, up = np.maximum(depth, 0.0).sum(), np.maximum(-depth, 0.0).sum()
+    if max(down, up) < _FLAT_MM:
+        return np.zeros(3)
+    return beam if down >= up else -beam
