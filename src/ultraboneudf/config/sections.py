@@ -103,7 +103,8 @@ class DataConfig(_Section):
     """Drop the echoes up to this many mm in front of a denser layer of echoes (the bone's band) along
     its normal, on the probe's side (:mod:`~ultraboneudf.geometry.echo_layers`): soft-tissue sheets,
     clusters and streaks that real segmentations take for bone. The probe's side is the probe's
-    where the points' probe positions are known, else the side away from which the bone bends
+    where the points' probe positions are known, else the side the beams come from where the
+    cloud's order tells them (``beams_from_order``), else the side away from which the bone bends
     (bone is mostly convex); echoes behind a layer are kept (both faces of a thin plate of bone are
     bone). Needs ``surface_fit_mm``; 0 = keep them."""
     beams_from_order: bool = False
