@@ -30,15 +30,23 @@ def frames_from_order(points: np.ndarray, plane_mm: float = FRAME_PLANE_MM,
     points in no such run."""
     p = np.asarray(points, dtype=np.float64)
     label = np.full(len(p), -1)
+    if len(p) < 4:
+        return label
+    # where a run can begin: three points not on a line, and the point after them or the one
+    # before in their plane (tested for all at once, so that a cloud in another order costs no loop
+    # over its points)
+    triples = np.stack([p[:-3], p[1:-2], p[2:-1]], axis=1)
+    centres = triples.mean(axis=1)
+    _, spreads, axes = np.linalg.svd(triples - centres[:, None, :])
+    after = np.abs(np.einsum("ij,ij->i", p[3:] - centres, axes[:, 2])) < plane_mm
+    before = np.zeros_like(after)
+    before[1:] = np.abs(np.einsum("ij,ij->i", p[:-4] - centres[1:], axes[1:, 2])) < plane_mm
+    begins = np.flatnonzero((spreads[:, 1] >= 1e-3) & (after | before))
     start, frame = 0, 0
-    while start < len(p) - 3:
+    while (k := np.searchsorted(begins, start)) < len(begins):
+        start = int(begins[k])
         end = start + 3
-        centre = p[start:end].mean(axis=0)
-        _, spread, axes = np.linalg.svd(p[start:end] - centre)
-        if spread[1] < 1e-3:  # three points on a line fix no plane
-            start += 1
-            continue
-        normal = axes[2]
+        centre, normal = centres[start], axes[start, 2]
         while end < len(p) and abs((p[end] - centre) @ normal) < plane_mm:
             end += 1
             if (end - start) & (end - start - 1) == 0:  # refit at powers of two: the plane of the run
@@ -62,6 +70,8 @@ def beams_from_order(points: np.ndarray, frames: np.ndarray) -> np.ndarray:
     p = np.asarray(points, dtype=np.float64)
     beams = np.zeros_like(p)
     frames = np.asarray(frames)
+    if len(p) == 0:
+        return beams
     order = np.argsort(frames, kind="stable")
     cuts = np.flatnonzero(np.diff(frames[order])) + 1
     for rows in np.split(order, cuts):
