@@ -134,13 +134,18 @@ def front_orientation(points: np.ndarray, normals: np.ndarray, convexity: float,
         owner, other = _pairs(tree.query_ball_point(points[rows], convexity, workers=-1))
         t = np.einsum("ij,ij->i", coarse[other] - points[rows][owner], normals[rows][owner])
         height[rows] = _group_median(t, owner, len(rows))
-    out = normals * np.where(height > 0, -1.0, 1.0)[:, None]
+    return majority(points, normals * np.where(height > 0, -1.0, 1.0)[:, None], consensus)
+
+
+def majority(points: np.ndarray, front: np.ndarray, consensus: float) -> np.ndarray:
+    """``front`` (R, 3) at ``points`` (R, 3), each turned where it disagrees with most of those
+    within ``consensus`` of it (a few rounds)."""
     owner, other = _pairs(kd_tree(points).query_ball_point(points, consensus, workers=-1))
     for _ in range(_CONSENSUS_ROUNDS):
-        agree = np.bincount(owner, weights=np.einsum("ij,ij->i", out[owner], out[other]),
+        agree = np.bincount(owner, weights=np.einsum("ij,ij->i", front[owner], front[other]),
                             minlength=len(points))
-        out = out * np.where(agree < 0, -1.0, 1.0)[:, None]
-    return out
+        front = front * np.where(agree < 0, -1.0, 1.0)[:, None]
+    return front
 
 
 def beam_front(points: np.ndarray, reps: np.ndarray, convex: np.ndarray, beams: np.ndarray,
@@ -166,13 +171,7 @@ def beam_front(points: np.ndarray, reps: np.ndarray, convex: np.ndarray, beams: 
     against = towards > 0
     if np.mean(against[told]) > 0.5:  # most beams run out of the bone: listed from the far end
         against = ~against
-    front = np.where((told & against)[:, None], -convex, convex)
-    owner, other = _pairs(kd_tree(points[reps]).query_ball_point(points[reps], consensus, workers=-1))
-    for _ in range(_CONSENSUS_ROUNDS):
-        agree = np.bincount(owner, weights=np.einsum("ij,ij->i", front[owner], front[other]),
-                            minlength=len(reps))
-        front = front * np.where(agree < 0, -1.0, 1.0)[:, None]
-    return front
+    return majority(points[reps], np.where((told & against)[:, None], -convex, convex), consensus)
 
 
 def in_front_of_denser_layer(points: np.ndarray, reps: np.ndarray, front: np.ndarray, *, depth: float,
