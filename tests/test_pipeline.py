@@ -446,7 +446,8 @@ def test_with_the_data_margin_the_extractor_meshes_a_field_that_stays_above_zero
 def test_a_cloud_written_frame_by_frame_row_by_row_tells_its_beams():
     """The mask pixels of a shaft's upper arc, 15 frames listed row by row from the probe down (as a
     compounding writes them): the robust preset takes the beams of all 15 for the false echoes'
-    side; the same cloud in another order, or with the option off, tells none."""
+    side and the grazing trim; the same cloud in another order, or with the option off, tells none;
+    with probe positions the beams are theirs."""
     import sys
     from pathlib import Path
 
@@ -456,12 +457,19 @@ def test_a_cloud_written_frame_by_frame_row_by_row_tells_its_beams():
     sys.path.insert(0, str(Path(__file__).parent / "geometry"))
     from test_frame_order import mask_frames
 
-    frames, _ = mask_frames()
+    frames, beam = mask_frames()
     pts = np.concatenate(frames)
     _, unit = prepare(pts, preset("robust"), seed=0)
     assert unit.order_frames == len(frames)
+    # the kept points carry them on to the grazing trim, unit length
+    assert len(unit.beams) == len(unit.points) and np.all(unit.beams @ beam > np.cos(np.radians(1.0)))
     shuffled = pts[np.random.default_rng(0).permutation(len(pts))]
     assert prepare(shuffled, preset("robust"), seed=0)[1].order_frames == 0
     off = preset("robust")
     off.data.beams_from_order = False
     assert prepare(pts, off, seed=0)[1].order_frames == 0
+    assert prepare(pts, off, seed=0)[1].beams is None
+    # a sweep's beams come from its probe positions
+    probe = pts + 30.0 * np.array([0.0, 0.0, 1.0])
+    swept = prepare(pts, preset("robust"), seed=0, probe_positions=probe)[1]
+    assert swept.order_frames == 0 and np.all(swept.beams @ beam > np.cos(np.radians(1.0)))

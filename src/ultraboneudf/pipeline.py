@@ -29,7 +29,7 @@ from .config import (DEFAULT_PRESET, CleanConfig, Config, ExtractConfig, GridCon
 from .devices import resolve_device
 from .errors import FitWarning, InputError
 from .evaluation.data_fit import data_fit
-from .extraction import extract_mesh, mesh_quality, trim_to_support
+from .extraction import extract_mesh, grazing_faces, mesh_quality, trim_to_support, without_faces
 from .fields.base import Field
 from .geometry.normalize import Normalizer
 from .geometry.data_surface import DataSurface
@@ -409,8 +409,7 @@ class FittedSurface:
                                      normals=self.fitted.normals, clean=clean, grid=grid)
         else:
             unit_mesh = None
-        mesh, trimmed = _trim_and_map(unit_mesh, self.support, self.normalizer, cfg.trim_mm,
-                                      cfg.trim_normal_mm, cfg.trim_rim_mm)
+        mesh, trimmed = _trim_and_map(unit_mesh, self.support, self.normalizer, cfg, self.unit)
         return mesh, trimmed, cfg
 
 
@@ -504,18 +503,22 @@ def resolve_normal_trim(cfg: ExtractConfig, planes: LocalPlanes | None, scale: f
     return dataclasses.replace(cfg, trim_normal_mm=min(cfg.trim_normal_mm, trim))
 
 
+_GRAZING_RADIUS_MM = 3.0  # the echoes around a face: within about a local plane's radius (data.surface_fit_mm)
 _TRIM_NORMAL_FLOOR_MM = 0.4  # on clean points the field's extracted zero set strays this far from the data
 
 
 def _trim_and_map(unit_mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, normalizer: Normalizer,
-                  trim_mm: float, trim_normal_mm: float = 0.0, trim_rim_mm: float = 0.0
-                  ) -> tuple[trimesh.Trimesh | None, int]:
+                  cfg: ExtractConfig, unit: UnitCloud) -> tuple[trimesh.Trimesh | None, int]:
     """The support trim (``extract.trim_mm``, ``trim_normal_mm`` and ``trim_rim_mm``, against the unit-space
-    ``support``), then the one map back to mm. Returns the mesh in mm (``None`` when nothing is
-    left) and the faces removed."""
+    ``support``) and the grazing trim (``trim_grazing_deg``, by the beams of ``unit``'s points), then
+    the one map back to mm. Returns the mesh in mm (``None`` when nothing is left) and the faces
+    removed."""
     if unit_mesh is None:
         return None, 0
-    trimmed = trim_to_support(unit_mesh, support, trim_mm / normalizer.scale,
-                              trim_normal_mm / normalizer.scale, trim_rim_mm / normalizer.scale)
+    trimmed = trim_to_support(unit_mesh, support, cfg.trim_mm / normalizer.scale,
+                              cfg.trim_normal_mm / normalizer.scale, cfg.trim_rim_mm / normalizer.scale)
+    if trimmed is not None and cfg.trim_grazing_deg > 0 and unit.beams is not None:
+        trimmed = without_faces(trimmed, grazing_faces(trimmed, unit.points, unit.beams,
+                                                       _GRAZING_RADIUS_MM / normalizer.scale, cfg.trim_grazing_deg))
     removed = len(unit_mesh.faces) - (0 if trimmed is None else len(trimmed.faces))
     return (None if trimmed is None else normalizer.inverse_mesh(trimmed)), removed

@@ -105,6 +105,8 @@ class UnitCloud:
     outliers: int               # points the local-plane stage dropped
     frames: int                 # distinct sweep frames given with the points (0: none given)
     order_frames: int           # frames whose beam the cloud's order told (0: none, or not asked)
+    beams: np.ndarray | None    # (M, 3) each point's beam direction, from its probe or the cloud's order
+                                # (zero rows: not told); None where neither tells
     voxel_mm: float             # the voxel edge used (data.voxel_size_mm, or coarser: data.max_voxels)
     plane_radius_mm: float      # the local planes' first radius (data.surface_fit_mm, or wider where sparse)
     voxel_s: float
@@ -164,8 +166,8 @@ def to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int
     planes, outliers, radius = None, 0, 0.0
     if d.surface_fit_mm > 0:
         radius = radius_for_density(voxelised, d.surface_fit_mm, d.surface_fit_points)
-        voxelised, voxel_attrs, planes, outliers = local_plane_stage(voxelised, voxel_attrs, d, source, radius,
-                                                                     voxel_beams)
+        voxelised, voxel_attrs, planes, outliers, voxel_beams = local_plane_stage(voxelised, voxel_attrs, d, source,
+                                                                                  radius, voxel_beams)
         if voxel_attrs is not None and voxel_attrs.with_frames:
             a = voxel_attrs.settled()
             planes = dataclasses.replace(planes, frame_axis=a.frame_axis, frame_order=a.frame_order,
@@ -173,15 +175,23 @@ def to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int
     elif d.denoise or d.outlier_sigmas > 0 or d.shadow_mm > 0 or d.front_echo_mm > 0 or d.min_component > 0:
         raise InputError("data.denoise, data.outlier_sigmas, data.shadow_mm, data.front_echo_mm and "
                          "data.min_component need the local planes: set data.surface_fit_mm > 0")
+    if voxel_attrs is not None:
+        voxel_beams = voxelised - voxel_attrs.probe
     normalizer = Normalizer.fit(voxelised)
     return UnitCloud(points=normalizer.forward(voxelised),
                      probe=None if voxel_attrs is None else normalizer.forward(voxel_attrs.probe),
                      planes=None if planes is None else planes.scaled(1.0 / normalizer.scale),
                      normalizer=normalizer, input_points=n_input, outliers=outliers,
                      frames=0 if frames is None else len(np.unique(frames)), order_frames=order_frames,
+                     beams=None if voxel_beams is None else _unit_rows(voxel_beams),
                      voxel_mm=voxel,
                      plane_radius_mm=radius,
                      voxel_s=t1 - t0, surface_fit_s=time.perf_counter() - t1)
+
+
+def _unit_rows(v: np.ndarray) -> np.ndarray:
+    """``v`` (N, 3) with each non-zero row scaled to unit length."""
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
 
 
 def _voxel_mean(points: np.ndarray, attrs: PointAttributes | None, beams: np.ndarray | None, voxel: float
@@ -198,7 +208,7 @@ def _voxel_mean(points: np.ndarray, attrs: PointAttributes | None, beams: np.nda
 
 def local_plane_stage(points: np.ndarray, attrs: PointAttributes | None, d: DataConfig, source: str,
                       radius: float, beams: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, PointAttributes | None, LocalPlanes, int]:
+                      ) -> tuple[np.ndarray, PointAttributes | None, LocalPlanes, int, np.ndarray | None]:
     """Robust local planes of the voxelised ``points`` (N, 3) mm at ``radius`` mm
     (``data.surface_fit_mm``, or the wider one :func:`radius_for_density` gives a sparse cloud),
     ``data.denoise`` times (at least once): drop the false echo layers (``front_echo_mm``,
@@ -206,7 +216,7 @@ def local_plane_stage(points: np.ndarray, attrs: PointAttributes | None, d: Data
     (``denoise``), drop the echoes in the shadow of others along their beam (``shadow_mm``; needs
     the probe positions). ``beams`` (N, 3): those a cloud without probe positions tells by its
     order (:mod:`~ultraboneudf.geometry.frame_order`), for the false echoes' side. Returns the
-    points, their attributes, their last planes and the number dropped."""
+    points, their attributes, their last planes, the number dropped and the kept points' beams."""
     planes, dropped = None, 0
     for _ in range(max(1, d.denoise)):
         view = None
@@ -231,7 +241,7 @@ def local_plane_stage(points: np.ndarray, attrs: PointAttributes | None, d: Data
         points, planes = points[keep], planes.subset(keep)
         attrs = None if attrs is None else attrs.subset(keep)
         beams = None if beams is None else beams[keep]
-    return points, attrs, planes, dropped
+    return points, attrs, planes, dropped, beams
 
 
 def validate_frames(frame_index: Any, probe: np.ndarray | None, source: str) -> np.ndarray | None:

@@ -1,4 +1,5 @@
-"""The support trim (``extract.trim_mm``) on an analytic mesh: a plane larger than its data."""
+"""The support trim (``extract.trim_mm``) on an analytic mesh: a plane larger than its data; the
+grazing trim (``extract.trim_grazing_deg``) on a shelf with a wall hanging from its rim."""
 
 import numpy as np
 import pytest
@@ -120,3 +121,54 @@ def test_rim_trim_opens_only_the_gaps_the_probe_looked_into():
     assert np.abs(centres[:, 0]).min() > 0.1
     assert out.area < mesh.area - 2 * 0.1
     assert trim_to_support(mesh, square_sweep(gap_y=0.4), 0.6, max_rim=0.05) is mesh
+
+
+def shelf():
+    """The plane z = 0 over [−1, 1]² with a wall x = 1, z ∈ [−0.5, 0], hanging from its edge: a
+    surface and a streak running on from its rim along the beams (−z)."""
+    top = plane(n=41)
+    a = np.linspace(-1.0, 1.0, 41)
+    b = np.linspace(-0.5, 0.0, 11)
+    yy, zz = np.meshgrid(a, b, indexing="ij")
+    wall = trimesh.Trimesh(np.c_[np.ones(yy.size), yy.ravel(), zz.ravel()],
+                           _grid_faces(41, 11), process=False)
+    return top, wall
+
+
+def _grid_faces(n: int, m: int) -> np.ndarray:
+    idx = np.arange(n * m).reshape(n, m)
+    q = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return np.r_[np.c_[q[0], q[1], q[2]], np.c_[q[0], q[2], q[3]]]
+
+
+def test_grazing_trim_drops_the_streak_along_the_beams_and_keeps_the_surface_they_meet():
+    """Echoes on the shelf of :func:`shelf` (top and wall) imaged from above (beams −z): the wall,
+    which the beams meet side-on (90°), goes at 70°; the top (0°) stays. Tilted 30° off the beams,
+    the wall (60°) stays. Beams of zero length, points farther than the radius and 0° judge
+    nothing."""
+    from ultraboneudf.extraction import grazing_faces
+
+    top, wall = shelf()
+    mesh = trimesh.util.concatenate([top, wall])
+    on_wall = np.abs(mesh.triangles_center[:, 0] - 1.0) < 1e-9
+    points = np.r_[top.vertices, wall.vertices]
+    down = np.tile([0.0, 0.0, -1.0], (len(points), 1))
+    np.testing.assert_array_equal(grazing_faces(mesh, points, down, 0.2, 70.0), on_wall)
+    tilted = np.tile([np.sin(np.radians(30.0)), 0.0, -np.cos(np.radians(30.0))], (len(points), 1))
+    assert not grazing_faces(mesh, points, tilted, 0.2, 70.0).any()
+    assert not grazing_faces(mesh, points, np.zeros_like(points), 0.2, 70.0).any()
+    assert not grazing_faces(mesh, points + [0.0, 0.0, 5.0], down, 0.2, 70.0).any()
+    assert not grazing_faces(mesh, points, down, 0.2, 0.0).any()
+
+
+def test_grazing_trim_averages_the_beams_of_both_passes_over_a_face():
+    """A face imaged by two passes, one meeting it head-on (beam −z) and one side-on (beam +x): their
+    mean beam meets it at 45°, so it stays at 70°; the side-on pass alone drops it."""
+    from ultraboneudf.extraction import grazing_faces
+
+    top = plane(n=21, half=0.5)
+    points = np.r_[top.vertices, top.vertices]
+    beams = np.r_[np.tile([0.0, 0.0, -1.0], (len(top.vertices), 1)), np.tile([1.0, 0.0, 0.0], (len(top.vertices), 1))]
+    assert not grazing_faces(top, points, beams, 0.2, 70.0).any()
+    side_on = np.tile([1.0, 0.0, 0.0], (len(top.vertices), 1))
+    assert grazing_faces(top, top.vertices, side_on, 0.2, 70.0).all()

@@ -168,6 +168,7 @@ def validate(cfg: Config, trains: bool = True) -> Config:
     for name in ("trim_normal_mm", "trim_rim_mm"):
         if getattr(e, name) > 0 and d.surface_fit_mm <= 0:
             problems.append(f"extract.{name} needs the local planes: set data.surface_fit_mm > 0")
+    need(0 <= e.trim_grazing_deg < 90, "extract.trim_grazing_deg", "0 (off) or an angle under 90 degrees")
     need(d.denoise >= 0, "data.denoise", "0 or more passes")
     need(d.surface_fit_points >= 0, "data.surface_fit_points", "0 (the radius as given) or more")
     need(d.steep_planes_deg == 0 or 60 < d.steep_planes_deg < 90, "data.steep_planes_deg",

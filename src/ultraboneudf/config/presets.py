@@ -129,6 +129,7 @@ def _robust() -> Config:
     cfg.extract.trim_normal_mm = 1.0
     cfg.extract.trim_normal_sigmas = 3.0
     cfg.extract.trim_rim_mm = 0.5
+    cfg.extract.trim_grazing_deg = 75.0
     cfg.clean.unfold_deg = 60.0
     return cfg
 

@@ -346,6 +346,13 @@ class ExtractConfig(_Section):
     within an image plane the probe looked on past the last echo and found no bone (a small bone's
     sides curving away from the beam), across the image planes it did not look. Needs the frames
     (``reconstruct SWEEP``, or ``frame_index=``): a cloud without them is not affected."""
+    trim_grazing_deg: float = 0.0
+    """A fourth trim, by the beams: drop the faces that the beams of the pre-processed points within
+    3 mm of them (their mean) meet this many degrees or more from their normal; 0 = off. A bone face
+    met nearly side-on sends no echo back to the probe: a face lying along the beams continues a
+    streak of echoes along them (a segmentation's band running on past a steep side of the bone),
+    not a surface they imaged. Needs the beams: a sweep's probe positions, or a cloud's order
+    (``data.beams_from_order``); a cloud with neither is not affected."""
     min_leaf_mm: float = 0.0
     """Leaves no smaller than this (mm): the octree depth is lowered from ``max_depth`` until the leaf
     edge reaches it, so a small bone is not meshed at a resolution finer than the data resolve (a

@@ -19,7 +19,7 @@ from ..progress import QUIET, Progress
 from .marching import (capudf_marching_cubes, sdf_marching_cubes, udf_to_sdf_marching_cubes)
 from .dualmesh import CORNER, EDGE, PLANE, TYPE_NAMES, band_threshold, clean_udf_mesh, dualmesh_udf
 from .quality import mesh_quality
-from .trim import trim_to_support
+from .trim import grazing_faces, trim_to_support, without_faces
 
 MODES: tuple[str, ...] = choices(ExtractConfig, "mode")
 
@@ -69,5 +69,5 @@ def extract_mesh(field: Field, cfg: ExtractConfig, progress: Progress = QUIET, *
 
 
 __all__ = ["extract_mesh", "dualmesh_udf", "clean_udf_mesh", "capudf_marching_cubes", "sdf_marching_cubes",
-           "udf_to_sdf_marching_cubes", "mesh_quality", "trim_to_support", "band_threshold", "MODES",
-           "CORNER", "EDGE", "PLANE", "TYPE_NAMES"]
+           "udf_to_sdf_marching_cubes", "mesh_quality", "trim_to_support", "grazing_faces", "without_faces",
+           "band_threshold", "MODES", "CORNER", "EDGE", "PLANE", "TYPE_NAMES"]

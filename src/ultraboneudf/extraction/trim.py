@@ -6,6 +6,11 @@ initial sphere survive where neither anchors nor grid queries reach (on the open
 ~50 mm beyond one epiphysis: 5% of the mesh area more than 40 mm from the truth). Such faces are far
 from every input point, so a distance test removes them without touching the surface the data
 supports. CAP-UDF's ``far`` trimming (§3.5 step 6) is the same rule.
+
+The grazing trim (:func:`grazing_faces`) asks the beams instead: a bone face that the beams meet
+nearly side-on sends no echo back to the probe, so a face lying along the beams of the echoes
+around it is not a surface they imaged; it continues a streak of echoes along the beam (the band
+of a segmentation running on past a steep side of the bone, the edge of a shadow).
 """
 
 from __future__ import annotations
@@ -41,6 +46,30 @@ def unsupported_faces(mesh: trimesh.Trimesh, support: np.ndarray | DataSurface, 
     return out
 
 
+_GRAZING_NEIGHBOURS = 16  # the beams averaged around a face: up to this many nearest points
+
+
+def grazing_faces(mesh: trimesh.Trimesh, points: np.ndarray, beams: np.ndarray, radius: float,
+                  min_deg: float) -> np.ndarray:
+    """(F,) bool: the faces of ``mesh`` that the beams of the ``points`` (N, 3) around them meet at
+    ``min_deg`` or more from their normal. ``beams`` (N, 3): each point's beam direction (zero
+    rows: unknown); a face's beam is the mean of those of its nearest points (up to 16) within
+    ``radius`` (the mesh's unit) of its centre, and a face with none there is not judged."""
+    told = np.any(beams != 0.0, axis=1)
+    if min_deg <= 0 or not told.any() or len(mesh.faces) == 0:
+        return np.zeros(len(mesh.faces), dtype=bool)
+    centres = mesh.triangles_center
+    unit = beams[told] / np.linalg.norm(beams[told], axis=1, keepdims=True)
+    k = min(_GRAZING_NEIGHBOURS, len(unit))
+    dist, idx = kd_tree(points[told]).query(centres, k=k, distance_upper_bound=radius, workers=-1)
+    dist, idx = dist.reshape(len(centres), k), idx.reshape(len(centres), k)
+    within = np.isfinite(dist)
+    mean = np.einsum("fk,fki->fi", within.astype(np.float64), unit[np.where(within, idx, 0)])
+    length = np.linalg.norm(mean, axis=1)
+    cos = np.abs(np.einsum("fi,fi->f", mean, mesh.face_normals)) / np.maximum(length, 1e-300)
+    return within.any(axis=1) & (length > 0) & (cos <= np.cos(np.radians(min_deg)))
+
+
 def trim_to_support(mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, max_distance: float,
                     max_normal: float = 0.0, max_rim: float = 0.0) -> trimesh.Trimesh | None:
     """``mesh`` without the faces of :func:`unsupported_faces` (mean vertex distance to ``support``
@@ -49,11 +78,16 @@ def trim_to_support(mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurf
     no face uses any more. All limits ≤ 0 return ``mesh`` unchanged; ``None`` when no face is left."""
     if mesh is None or (max_distance <= 0 and max_normal <= 0 and max_rim <= 0):
         return mesh
-    keep = ~unsupported_faces(mesh, support, max_distance, max_normal, max_rim)
-    if keep.all():
+    return without_faces(mesh, unsupported_faces(mesh, support, max_distance, max_normal, max_rim))
+
+
+def without_faces(mesh: trimesh.Trimesh, drop: np.ndarray) -> trimesh.Trimesh | None:
+    """``mesh`` without the faces ``drop`` (F,) bool marks and the vertices no face uses any more;
+    ``mesh`` itself when none is marked, ``None`` when all are."""
+    if not drop.any():
         return mesh
-    if not keep.any():
+    if drop.all():
         return None
-    out = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
+    out = trimesh.Trimesh(mesh.vertices, mesh.faces[~drop], process=False)
     out.remove_unreferenced_vertices()
     return out
