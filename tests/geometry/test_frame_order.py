@@ -72,3 +72,20 @@ def test_a_frame_of_one_row_has_no_side(rows):
         assert not beams.any()
     else:
         assert np.allclose(beams, [0.0, 0.0, -1.0])
+
+
+def test_a_cloud_listed_along_its_echoes_curve_tells_no_beam():
+    """One noisy echo per scan line across the shaft's upper arc, each frame listed from one side of
+    the arc to the other (a cloud written along its curve, not row by row): its depth steps back up
+    as much as down, and no point is told a beam; the same frames listed row by row all are."""
+    rng = np.random.default_rng(0)
+    y = np.arange(-10.0, 10.0, LATERAL)
+    frames = [np.column_stack([np.full(len(y), x), y, np.sqrt(RADIUS**2 - y**2)])
+              + rng.normal(0.0, 0.1, (len(y), 3)) * [0.0, 1.0, 1.0] for x in np.linspace(-30.0, 30.0, 15)]
+    points = np.concatenate(frames)
+    label = frames_from_order(points)
+    assert (label >= 0).mean() > 0.9  # the frames are found
+    assert not beams_from_order(points, label).any()
+    rows, _ = mask_frames()
+    rows = np.concatenate(rows)
+    assert np.any(beams_from_order(rows, frames_from_order(rows)) != 0, axis=1).all()

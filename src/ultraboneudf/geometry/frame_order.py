@@ -21,6 +21,7 @@ FRAME_PLANE_MM = 0.02   # consecutive points this close to one plane are one fra
 FRAME_MIN_POINTS = 5
 _ROW_TOLERANCE_DEG = 0.5  # steps within an image row share their direction to this
 _FLAT_MM = 1e-3           # a run whose depth never changes more than this is one row: no side
+_MAX_STEP_BACK = 0.1      # the median frame of a cloud listed row by row steps back up less of its depth
 
 
 def frames_from_order(points: np.ndarray, plane_mm: float = FRAME_PLANE_MM,
@@ -66,7 +67,9 @@ def frames_from_order(points: np.ndarray, plane_mm: float = FRAME_PLANE_MM,
 def beams_from_order(points: np.ndarray, frames: np.ndarray) -> np.ndarray:
     """(N, 3): each point's beam, the unit direction from the probe into the tissue, from its frame
     (``frames`` from :func:`frames_from_order`) listed row by row (module docstring); zero rows where
-    the frame tells none: in no frame, no two steps along one row, or one row only (no depth)."""
+    the frame tells none: in no frame, no two steps along one row, or one row only (no depth); all
+    zero where the median frame steps back up the beam more than a tenth of its depth steps (a
+    cloud listed along its echoes' curve, not row by row)."""
     p = np.asarray(points, dtype=np.float64)
     beams = np.zeros_like(p)
     frames = np.asarray(frames)
@@ -74,9 +77,18 @@ def beams_from_order(points: np.ndarray, frames: np.ndarray) -> np.ndarray:
         return beams
     order = np.argsort(frames, kind="stable")
     cuts = np.flatnonzero(np.diff(frames[order])) + 1
+    back = []
     for rows in np.split(order, cuts):
         if frames[rows[0]] >= 0 and len(rows) >= 3:
-            beams[rows] = frame_beam(p[rows])
+            beam = frame_beam(p[rows])
+            if beam.any():
+                beams[rows] = beam
+                depth = np.diff(p[rows] @ beam)
+                back.append(np.maximum(-depth, 0.0).sum() / np.abs(depth).sum())
+    # listed row by row, a frame's depth only grows (but where two frames in one plane merged); a
+    # cloud listed along its echoes' curve steps back up about as much as down, whatever its steps
+    if back and np.median(back) > _MAX_STEP_BACK:
+        beams[:] = 0.0
     return beams
 
 
