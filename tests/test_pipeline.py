@@ -473,3 +473,39 @@ def test_a_cloud_written_frame_by_frame_row_by_row_tells_its_beams():
     probe = pts + 30.0 * np.array([0.0, 0.0, 1.0])
     swept = prepare(pts, preset("robust"), seed=0, probe_positions=probe)[1]
     assert swept.order_frames == 0 and np.all(swept.beams @ beam > np.cos(np.radians(1.0)))
+
+
+def test_the_extraction_trims_the_faces_along_the_beams_the_cloud_told():
+    """The shaft's arc of :func:`test_a_cloud_written_frame_by_frame_row_by_row_tells_its_beams`
+    (beams −z), and a mesh in unit space: a patch on the shaft's top (the beams meet it head-on)
+    and a wall standing beside it along the beams. With ``extract.trim_grazing_deg`` the wall goes
+    and the patch stays; at 0 both stay."""
+    import dataclasses
+    import sys
+    from pathlib import Path
+
+    import trimesh
+
+    from ultraboneudf.config.presets import preset
+    from ultraboneudf.pipeline import _trim_and_map
+    from ultraboneudf.preprocess import prepare
+
+    sys.path.insert(0, str(Path(__file__).parent / "geometry"))
+    from test_frame_order import mask_frames
+
+    frames, _ = mask_frames()
+    cfg = preset("robust")
+    _, unit = prepare(np.concatenate(frames), cfg, seed=0)
+    patch = trimesh.creation.box(extents=(20.0, 4.0, 1e-3))
+    patch.apply_translation([0.0, 0.0, 12.0])
+    wall = trimesh.creation.box(extents=(20.0, 1e-3, 3.0))
+    wall.apply_translation([0.0, 3.0, 10.5])
+    mesh = trimesh.util.concatenate([patch, wall])
+    unit_mesh = trimesh.Trimesh(unit.normalizer.forward(mesh.vertices), mesh.faces, process=False)
+    extract = dataclasses.replace(cfg.extract, trim_mm=0.0, trim_normal_mm=0.0, trim_rim_mm=0.0)
+    out, removed = _trim_and_map(unit_mesh, unit.points, unit.normalizer, extract, unit)
+    assert removed > 0 and np.abs(out.face_normals[:, 1]).max() < 0.5  # no face of the wall's sides
+    assert out.area > patch.area * 0.99
+    kept, removed = _trim_and_map(unit_mesh, unit.points, unit.normalizer,
+                                  dataclasses.replace(extract, trim_grazing_deg=0.0), unit)
+    assert removed == 0 and kept.area == pytest.approx(mesh.area)

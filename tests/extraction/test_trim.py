@@ -13,9 +13,7 @@ def plane(n=81, half=1.0):
     a = np.linspace(-half, half, n)
     xx, yy = np.meshgrid(a, a, indexing="ij")
     v = np.c_[xx.ravel(), yy.ravel(), np.zeros(n * n)]
-    idx = np.arange(n * n).reshape(n, n)
-    q = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
-    return trimesh.Trimesh(v, np.r_[np.c_[q[0], q[1], q[2]], np.c_[q[0], q[2], q[3]]], process=False)
+    return trimesh.Trimesh(v, _grid_faces(n, n), process=False)
 
 
 @pytest.fixture
@@ -136,6 +134,7 @@ def shelf():
 
 
 def _grid_faces(n: int, m: int) -> np.ndarray:
+    """The triangles of an n × m grid of vertices numbered row-major."""
     idx = np.arange(n * m).reshape(n, m)
     q = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
     return np.r_[np.c_[q[0], q[1], q[2]], np.c_[q[0], q[2], q[3]]]
