@@ -48,10 +48,12 @@ their distance to the bone in bands, and the groups that the points more than 2 
 spread of their principal axes) and their side (in front of the bone, outside the CT, or behind it);
 and, for the points within 5 mm of the bone, their median signed distance to it by the angle between
 the beam and the bone's normal (``by_incidence``, 15° bins): how far out of the bone an oblique face's
-echoes lie. A sweep's beams are known; a compounded cloud that keeps its frames' points together
-(consecutive points in one plane, as the UltraBonesHip clouds do) has its beams estimated, each
-frame's as the second principal axis of its points within its plane (on the fibula sweep, where the
-true beams are known, a median 16° off them); a cloud in another order has no such row.
+echoes lie. A sweep's beams are known; a compounded cloud written frame by frame, each frame row
+by row (as the UltraBonesHip clouds are), tells its frames' beams by that order
+(``beams_from_order``; ``beams``: ``order``); one that keeps only its frames' points together has
+its beams estimated, each frame's as the second principal axis of its points within its plane (on
+the fibula sweep, where the true beams are known, a median 16° off them; ``frames``); a cloud in
+another order has no such row.
 
     python benchmarks/bench_real.py --clouds REAL_CLOUDS_DIR --methods ultraboneudf,ultraboneudf@fast,poisson
     python benchmarks/bench_real.py --sweep SWEEP_DIR --ct Fibula.stl --frame-steps 3,10
@@ -195,11 +197,15 @@ def describe(points: np.ndarray, truth: Truth, probe: np.ndarray | None = None) 
     if probe is not None:
         out["beams"], beams = "probe", points - probe
     else:
-        from ultraboneudf.geometry.frame_order import frames_from_order
+        from ultraboneudf.geometry.frame_order import beams_from_order, frames_from_order
 
         label = frames_from_order(points)
+        told = beams_from_order(points, label)
         in_order = np.mean(label >= 0) >= 0.5  # a cloud that keeps its frames' points together
-        out["beams"], beams = ("frames", frame_beams(points, label)) if in_order else (None, None)
+        if told.any():  # written row by row: each frame's own beam (rows it does not tell skipped)
+            out["beams"], beams = "order", told
+        else:
+            out["beams"], beams = ("frames", frame_beams(points, label)) if in_order else (None, None)
     if beams is not None:
         out["by_incidence"] = by_incidence(s, normals, beams)
     return out

@@ -82,7 +82,7 @@ def _slices(rng, count=12, per=60, radius=12.0):
 
 def test_oblique_faces_offset_by_incidence(bench_real, tmp_path):
     """Points pushed out of a cylinder by 2 × (1 − cos incidence): the by-incidence medians follow,
-    with the beam known (straight down) and estimated from the frames."""
+    with the beam known (straight down), estimated from the frames, and told by a row-by-row order."""
     frames = _slices(np.random.default_rng(2), per=200)
     points = np.concatenate(frames)
     radial = points[:, :2] / np.linalg.norm(points[:, :2], axis=1, keepdims=True)
@@ -105,6 +105,18 @@ def test_oblique_faces_offset_by_incidence(bench_real, tmp_path):
     info = bench_real.describe(pushed, truth)
     assert info["beams"] == "frames"
     assert info["by_incidence"]["75-90"]["median_mm"] > 1.2 > 0.2 > info["by_incidence"]["0-15"]["median_mm"]
+    # the same frames on a pixel grid, each written row by row from the probe down: their order
+    # tells the beam itself, and every bin follows the push as with the beam known
+    rows = []
+    for z in np.unique(pushed[:, 2]):
+        pixels = np.unique(np.rint(pushed[pushed[:, 2] == z][:, :2] / [0.3, 0.08]), axis=0) * [0.3, 0.08]
+        pixels = pixels[np.lexsort((pixels[:, 0], -pixels[:, 1]))]
+        rows.append(np.column_stack([pixels, np.full(len(pixels), z)]))
+    written = np.concatenate(rows)
+    info = bench_real.describe(written, bench_real.Truth(path, written, samples=400_000))
+    assert info["beams"] == "order"
+    for bin_, row in info["by_incidence"].items():
+        assert row["median_mm"] == pytest.approx(known[bin_]["median_mm"], abs=0.1)
 
 
 def test_the_principal_pose_is_rigid_and_follows_the_cloud(bench_real):
