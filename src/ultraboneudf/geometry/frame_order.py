@@ -80,11 +80,10 @@ def beams_from_order(points: np.ndarray, frames: np.ndarray) -> np.ndarray:
     back = []
     for rows in np.split(order, cuts):
         if frames[rows[0]] >= 0 and len(rows) >= 3:
-            beam = frame_beam(p[rows])
+            beam, stepped_back = frame_beam(p[rows])
             if beam.any():
                 beams[rows] = beam
-                depth = np.diff(p[rows] @ beam)
-                back.append(np.maximum(-depth, 0.0).sum() / np.abs(depth).sum())
+                back.append(stepped_back)
     # listed row by row, a frame's depth only grows (but where two frames in one plane merged); a
     # cloud listed along its echoes' curve steps back up about as much as down, whatever its steps
     if back and np.median(back) > _MAX_STEP_BACK:
@@ -92,26 +91,27 @@ def beams_from_order(points: np.ndarray, frames: np.ndarray) -> np.ndarray:
     return beams
 
 
-def frame_beam(points: np.ndarray) -> np.ndarray:
-    """(3,) the beam of one frame's ``points`` (M, 3, in their order; module docstring), or zeros."""
+def frame_beam(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """The beam (3,) of one frame's ``points`` (M, 3, in their order; module docstring), or zeros,
+    and the share of the frame's depth steps along it that step back up toward the probe."""
     centred = points - points.mean(axis=0)
     e1, e2, normal = np.linalg.svd(centred, full_matrices=False)[2]
     steps = np.diff(centred, axis=0)
     x, y = steps @ e1, steps @ e2
     moving = np.hypot(x, y) > 1e-9
     if moving.sum() < 2:
-        return np.zeros(3)
+        return np.zeros(3), 0.0
     angle = np.sort(np.degrees(np.arctan2(y[moving], x[moving])) % 180.0)
     wrapped = np.concatenate([angle, angle + 180.0])
     # how many step directions lie within the tolerance above each: the row's direction is the most shared
     shared = np.searchsorted(wrapped, angle + _ROW_TOLERANCE_DEG, side="right") - np.arange(len(angle))
     first = int(np.argmax(shared))
     if shared[first] < 2:
-        return np.zeros(3)
+        return np.zeros(3), 0.0
     row = np.radians(np.median(wrapped[first:first + shared[first]]))
     beam = np.cross(normal, np.cos(row) * e1 + np.sin(row) * e2)
     depth = steps @ beam
     down, up = np.maximum(depth, 0.0).sum(), np.maximum(-depth, 0.0).sum()
     if max(down, up) < _FLAT_MM:
-        return np.zeros(3)
-    return beam if down >= up else -beam
+        return np.zeros(3), 0.0
+    return (beam, up / (down + up)) if down >= up else (-beam, down / (down + up))
