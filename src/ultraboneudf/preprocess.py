@@ -26,6 +26,7 @@ from .geometry.frames import frame_axes, sweep_ends
 from .geometry.normalize import Normalizer
 from .geometry.data_surface import DataSurface
 from .geometry.surface_fit import LocalPlanes, fit_local_planes, radius_for_density, shadowed, steep_echoes
+from .geometry.vectors import unit_rows
 from .geometry.voxel import voxel_downsample, voxel_downsample_with
 from .io import check_units, validate_points
 
@@ -87,7 +88,7 @@ class PointAttributes:
         (a voxel shared by two frames, rare at 0.1 mm, takes one of them)."""
         if not self.with_frames:
             return self
-        axis = self.frame_axis / np.maximum(np.linalg.norm(self.frame_axis, axis=1, keepdims=True), 1e-12)
+        axis = unit_rows(self.frame_axis)
         length = np.linalg.norm(self.frame_end, axis=1, keepdims=True)
         end = np.where(length > 0.5, self.frame_end / np.maximum(length, 1e-12), 0.0)
         return PointAttributes(self.probe, axis, np.rint(self.frame_order), end)
@@ -183,15 +184,10 @@ def to_unit(points: np.ndarray, probe: np.ndarray | None, cfg: Config, seed: int
                      planes=None if planes is None else planes.scaled(1.0 / normalizer.scale),
                      normalizer=normalizer, input_points=n_input, outliers=outliers,
                      frames=0 if frames is None else len(np.unique(frames)), order_frames=order_frames,
-                     beams=None if voxel_beams is None else _unit_rows(voxel_beams),
+                     beams=None if voxel_beams is None else unit_rows(voxel_beams),
                      voxel_mm=voxel,
                      plane_radius_mm=radius,
                      voxel_s=t1 - t0, surface_fit_s=time.perf_counter() - t1)
-
-
-def _unit_rows(v: np.ndarray) -> np.ndarray:
-    """``v`` (N, 3) with each non-zero row scaled to unit length."""
-    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
 
 
 def _voxel_mean(points: np.ndarray, attrs: PointAttributes | None, beams: np.ndarray | None, voxel: float
@@ -221,8 +217,7 @@ def local_plane_stage(points: np.ndarray, attrs: PointAttributes | None, d: Data
     for _ in range(max(1, d.denoise)):
         view = None
         if attrs is not None:  # sweep points: the planes must face the probe
-            view = points - attrs.probe
-            view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
+            view = unit_rows(points - attrs.probe)
         planes = fit_local_planes(points, radius, view=view, steep_deg=d.steep_planes_deg)
         keep = ~false_echoes(points, planes, view, depth=d.front_echo_mm, ratio=d.front_echo_ratio,
                              fraction=d.min_component, beams=beams)

@@ -111,3 +111,15 @@ def test_the_nearest_neighbour_back_ends_agree():
     package = Path(ultraboneudf.__file__).parent
     builders = sorted(str(f.relative_to(package)) for f in package.rglob("*.py") if "cKDTree" in f.read_text())
     assert builders == ["geometry/neighbors.py"]
+
+
+def test_unit_rows_scales_each_vector_and_keeps_unknown_ones_zero():
+    from ultraboneudf.geometry.vectors import unit_rows
+
+    v = np.array([[3.0, 0.0, 4.0], [0.0, 0.0, 0.0], [0.0, -2e-20, 0.0]])
+    u = unit_rows(v)
+    np.testing.assert_allclose(u, [[0.6, 0.0, 0.8], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    assert not np.isnan(u).any()
+    np.testing.assert_array_equal(v[0], [3.0, 0.0, 4.0])  # the input is left as it was
+    stacked = unit_rows(np.stack([v, 2 * v]))  # any leading shape: the last axis is the vector
+    np.testing.assert_allclose(stacked, np.stack([u, u]))

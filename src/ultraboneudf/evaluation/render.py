@@ -30,6 +30,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.neighbors import kd_tree
+from ..geometry.vectors import unit_rows
 from ..io import atomic_write_bytes
 from ..pictures import pil, png_bytes, ramp, text_font
 from .sampling import MeshLike, face_areas, mesh_arrays
@@ -271,8 +272,7 @@ def render_view(vertices: np.ndarray, faces: np.ndarray, cam: Camera, framing: F
         f = fbuf[hit]
         tri = faces[f]
         a = np.asarray(vertices, dtype=np.float64)
-        n = np.cross(a[tri[:, 1]] - a[tri[:, 0]], a[tri[:, 2]] - a[tri[:, 0]])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+        n = unit_rows(np.cross(a[tri[:, 1]] - a[tri[:, 0]], a[tri[:, 2]] - a[tri[:, 0]]))
         head = cam.toward
         key = 0.45 * cam.right * -1 + 0.55 * cam.up + cam.toward
         key /= np.linalg.norm(key)

@@ -20,6 +20,7 @@ import trimesh
 
 from ..geometry.neighbors import kd_tree
 from ..geometry.data_surface import DataSurface
+from ..geometry.vectors import unit_rows
 
 
 def unsupported_faces(mesh: trimesh.Trimesh, support: np.ndarray | DataSurface, max_distance: float,
@@ -59,7 +60,7 @@ def grazing_faces(mesh: trimesh.Trimesh, points: np.ndarray, beams: np.ndarray, 
     if min_deg <= 0 or not told.any() or len(mesh.faces) == 0:
         return np.zeros(len(mesh.faces), dtype=bool)
     centres = mesh.triangles_center
-    unit = beams[told] / np.linalg.norm(beams[told], axis=1, keepdims=True)
+    unit = unit_rows(beams[told])
     k = min(_GRAZING_NEIGHBOURS, len(unit))
     dist, idx = kd_tree(points[told]).query(centres, k=k, distance_upper_bound=radius, workers=-1)
     dist, idx = dist.reshape(len(centres), k), idx.reshape(len(centres), k)

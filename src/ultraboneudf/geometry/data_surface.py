@@ -45,17 +45,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .neighbors import kd_tree
+from .vectors import unit_rows
 
 if TYPE_CHECKING:
     from .surface_fit import LocalPlanes
 
 _PLANES_AGREE_DEG = 10.0  # two planes within this angle interpolate a gap; from twice it, the chord
 _ACROSS_FRAMES_COS = float(np.cos(np.radians(45.0)))  # a chord this close to the frame axis spans frames
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    """``v`` (..., 3) scaled to unit length along its last axis (zero rows stay zero)."""
-    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
 
 
 class DataSurface:
@@ -122,7 +118,7 @@ class DataSurface:
         # to x moved away from it by half the gap length, which finds the next slice across a gap.
         toward = self.points[first] - x
         toward -= np.einsum("mi,mi->m", toward, n)[:, None] * n
-        toward = _unit(toward)
+        toward = unit_rows(toward)
         lengths = [self.bridge] if self.frame_axis is None else [self.bridge, self.frame_bridge]
         far = [self.tree.query(x - 0.5 * length[first, None] * toward, k=1, workers=-1)[1] for length in lengths]
         idx = np.concatenate([idx] + [np.asarray(f).reshape(-1, 1) for f in far], axis=1)
@@ -147,9 +143,9 @@ class DataSurface:
         n_j = np.where((np.einsum("mi,mi->m", n_j, n) < 0)[:, None], -n_j, n_j)
         # the chord from the nearest to the opposite point, swept along the surface
         off_j = offset[rows, j]
-        chord = _unit(off_j - offset[:, 0])
+        chord = unit_rows(off_j - offset[:, 0])
         n_c = n + n_j
-        n_c = _unit(n_c - np.einsum("mi,mi->m", n_c, chord)[:, None] * chord)
+        n_c = unit_rows(n_c - np.einsum("mi,mi->m", n_c, chord)[:, None] * chord)
         chord_side = -np.einsum("mi,mi->m", offset[:, 0], n_c)
         a0 = -across[:, 0]                                               # signed plane distances of x
         aj = -np.einsum("mi,mi->m", off_j, n_j)
@@ -165,7 +161,7 @@ class DataSurface:
         beyond = np.sqrt(a0 ** 2 + np.maximum(b0 - self.reach[first], 0.0) ** 2)
         if self.frame_end is not None:
             out = self.frame_end[first]
-            out = _unit(out - np.einsum("mi,mi->m", out, n)[:, None] * n)
+            out = unit_rows(out - np.einsum("mi,mi->m", out, n)[:, None] * n)
             past = np.maximum(-np.einsum("mi,mi->m", inplane[:, 0], out), 0.0)
             side = np.sqrt(np.maximum(b0 ** 2 - past ** 2, 0.0))
             cut = np.sqrt(a0 ** 2 + past ** 2 + np.maximum(side - self.reach[first], 0.0) ** 2)
@@ -176,7 +172,7 @@ class DataSurface:
             axis = self.frame_axis[first]
             axis = axis - np.einsum("mi,mi->m", axis, n)[:, None] * n
             known = np.linalg.norm(axis, axis=1) > 0.5
-            across_frames = np.abs(np.einsum("mi,mi->m", inplane[:, 0], _unit(axis)))
+            across_frames = np.abs(np.einsum("mi,mi->m", inplane[:, 0], unit_rows(axis)))
             within = np.sqrt(np.maximum(b0 ** 2 - across_frames ** 2, 0.0))
             seen = np.where(known & ~has, np.maximum(within - self.reach[first], 0.0), 0.0)
         return np.where(has, between, beyond), np.where(has, between, np.abs(a0)), seen

@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from ..geometry.neighbors import kd_tree
 from ..geometry.surface_fit import robust_quadric_fit
+from ..geometry.vectors import unit_rows
 from .compound import CompoundedPoints
 
 _TUKEY = 3.0           # a point weighs nothing beyond this many robust spreads of its frame
@@ -141,15 +142,14 @@ def _frame_axes(cp: CompoundedPoints, frame: np.ndarray, n_frames: int
     centroid /= counts
     beam = np.zeros((n_frames, 3))
     np.add.at(beam, frame, cp.beam_direction)
-    beam /= np.maximum(np.linalg.norm(beam, axis=1, keepdims=True), 1e-12)
+    beam = unit_rows(beam)
     # the lateral direction: the principal axis of the points across the beams
     d = cp.points - centroid[frame]
     d -= np.einsum("ni,ni->n", d, beam[frame])[:, None] * beam[frame]
     scatter = np.zeros((n_frames, 3, 3))
     np.add.at(scatter, frame, d[:, :, None] * d[:, None, :])
     lateral = np.linalg.eigh(scatter)[1][:, :, 2]
-    elevation = np.cross(beam, lateral)
-    elevation /= np.maximum(np.linalg.norm(elevation, axis=1, keepdims=True), 1e-12)
+    elevation = unit_rows(np.cross(beam, lateral))
     return beam, elevation, centroid
 
 
@@ -161,8 +161,7 @@ def _heights(cp: CompoundedPoints, sample: np.ndarray, frame: np.ndarray, elevat
     probe), whether the plane is accepted, and whether other frames lie on both sides of the
     point's image plane."""
     pts, fr = cp.points[sample], frame[sample]
-    view = pts - cp.probe_position[sample]
-    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
+    view = unit_rows(pts - cp.probe_position[sample])
     tree = kd_tree(pts)
     k = int(min(max_neighbors, len(pts)))
     m = len(pts)
