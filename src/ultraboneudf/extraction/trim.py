@@ -68,7 +68,7 @@ def grazing_faces(mesh: trimesh.Trimesh, points: np.ndarray, beams: np.ndarray, 
     mean = np.einsum("fk,fki->fi", within.astype(np.float64), unit[np.where(within, idx, 0)])
     length = np.linalg.norm(mean, axis=1)
     cos = np.abs(np.einsum("fi,fi->f", mean, mesh.face_normals)) / np.maximum(length, 1e-300)
-    return within.any(axis=1) & (length > 0) & (cos <= np.cos(np.radians(min_deg)))
+    return (length > 0) & (cos <= np.cos(np.radians(min_deg)))  # no beam within the radius: length 0
 
 
 def trim_to_support(mesh: trimesh.Trimesh | None, support: np.ndarray | DataSurface, max_distance: float,
