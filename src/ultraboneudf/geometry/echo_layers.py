@@ -46,7 +46,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .neighbors import kd_tree
+from .neighbors import KDTree, kd_tree
 from .surface_fit import LocalPlanes, shadowed
 from .voxel import voxel_groups
 
@@ -88,15 +88,16 @@ def false_echoes(points: np.ndarray, planes: LocalPlanes, view: np.ndarray | Non
         strong = planes.valid & (planes.radius <= radius) & (planes.count >= _DENSE * np.median(planes.count))
         reps = representatives(pts, strong, radius / 2.0)
         if len(reps):
+            tree = kd_tree(pts)
             if view is not None:
                 front = planes.normal[reps] * np.where(
                     np.einsum("ij,ij->i", planes.normal[reps], view[reps]) > 0, -1.0, 1.0)[:, None]
             else:
                 front = front_orientation(pts[reps], planes.normal[reps], _CONVEXITY, radius)
                 if beams is not None:
-                    front = beam_front(pts, reps, front, beams, radius)
+                    front = beam_front(pts, reps, front, beams, radius, tree)
             out = in_front_of_denser_layer(pts, reps, front, depth=depth, lateral=radius,
-                                           gap=0.75 * radius, ratio=ratio) >= votes
+                                           gap=0.75 * radius, ratio=ratio, tree=tree) >= votes
             if view is not None:
                 # the beam that imaged a false echo in front of the bone went on to the bone; one
                 # that imaged bone stopped there, whatever bone other beams saw behind it
@@ -149,13 +150,15 @@ def majority(points: np.ndarray, front: np.ndarray, consensus: float) -> np.ndar
 
 
 def beam_front(points: np.ndarray, reps: np.ndarray, convex: np.ndarray, beams: np.ndarray,
-               consensus: float) -> np.ndarray:
+               consensus: float, tree: KDTree | None = None) -> np.ndarray:
     """(R, 3): the front of each representative ``reps`` (R,) of ``points`` (N, 3) from the
     ``beams`` (N, 3; zero where unknown) of its nearest points: its normal turned against their
     sum; ``convex`` (R, 3), the convexity rule's front, where they tell nothing or meet the plane at
     more than ``_BEAM_MAX_DEG``, and for all of them when the beams are not beams (module
-    docstring); then the neighbours' vote within ``consensus``."""
-    _, near = kd_tree(points).query(points[reps], k=min(_BEAM_NEIGHBOURS, len(points)), workers=-1)
+    docstring); then the neighbours' vote within ``consensus``. ``tree``: a KD-tree of ``points``
+    already built."""
+    tree = kd_tree(points) if tree is None else tree
+    _, near = tree.query(points[reps], k=min(_BEAM_NEIGHBOURS, len(points)), workers=-1)
     summed = beams[near.reshape(len(reps), -1)].sum(axis=1)
     length = np.linalg.norm(summed, axis=1)
     towards = np.einsum("ij,ij->i", convex, summed)  # > 0: the beams run along convexity's front
@@ -175,11 +178,13 @@ def beam_front(points: np.ndarray, reps: np.ndarray, convex: np.ndarray, beams: 
 
 
 def in_front_of_denser_layer(points: np.ndarray, reps: np.ndarray, front: np.ndarray, *, depth: float,
-                             lateral: float, gap: float, ratio: float) -> np.ndarray:
+                             lateral: float, gap: float, ratio: float, tree: KDTree | None = None
+                             ) -> np.ndarray:
     """(N,) int: for every point, the number of representatives ``reps`` (R,) whose column (normal
     ``front`` (R, 3), toward the probe) holds it between ``gap`` and ``depth`` in front, in a layer
-    less than ``1 / ratio`` as dense as the representative's own."""
-    tree = kd_tree(points)
+    less than ``1 / ratio`` as dense as the representative's own. ``tree``: a KD-tree of ``points``
+    already built."""
+    tree = kd_tree(points) if tree is None else tree
     edges = np.arange(-_OWN_LAYER - _LAYER_BIN, depth + _LAYER_BIN, _LAYER_BIN)
     nbins = len(edges) - 1
     own = (edges[:-1] + _LAYER_BIN / 2 >= -_OWN_LAYER) & (edges[:-1] + _LAYER_BIN / 2 <= _OWN_LAYER)
