@@ -24,6 +24,22 @@ def test_without_a_terminal_progress_is_plain_lines_with_the_time_left():
     assert "\x1b" not in out.getvalue()                    # no terminal escapes in a log file
 
 
+def test_plain_lines_write_large_counts_in_full_and_no_count_for_a_stage_without_steps():
+    out = io.StringIO()
+    progress = Progress(stream=out, interval=0.0)
+    with progress.stage("distances", 7_011_840) as advance:
+        advance(5_704_150)
+    with progress.stage("ground truth"):
+        pass
+    with progress.stage("points") as advance:
+        advance(2.5)
+    lines = out.getvalue().splitlines()
+    assert lines[0].startswith("distances: 5,704,150/7,011,840 (81%), ")
+    assert lines[1].startswith("distances: 7,011,840/7,011,840 (100%), ") and "e+" not in out.getvalue()
+    assert lines[2].startswith("ground truth: 0:00:00 elapsed (done)")
+    assert lines[-1].startswith("points: 2.5, ")
+
+
 def test_lines_come_at_most_once_per_interval_and_quiet_prints_nothing():
     out = io.StringIO()
     with Progress(stream=out, interval=3600.0).stage("extraction", 1000) as advance:

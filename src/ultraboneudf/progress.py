@@ -45,6 +45,11 @@ def _clock(seconds: float | None) -> str:
     return "-:--:--" if seconds is None else str(timedelta(seconds=round(seconds)))
 
 
+def _count(n: float) -> str:
+    # whole counts in full (a log reads "5,704,150", not "5.70415e+06"); fractional ones short
+    return f"{int(n):,}" if float(n).is_integer() else f"{n:.3g}"
+
+
 class _TimeLeft(ProgressColumn):
     """The stage's time left from its average pace (see the module doc)."""
 
@@ -103,10 +108,13 @@ class Progress:
 
         def line(now: float, final: bool = False) -> str:
             elapsed = now - start
-            count = f"{done:g}/{total:g} ({100 * done / total:.0f}%)" if total else f"{done:g}"
+            if total:
+                count = f"{_count(done)}/{_count(total)} ({100 * done / total:.0f}%), "
+            else:  # a stage without steps (nothing counted) shows its time alone
+                count = f"{_count(done)}, " if done else ""
             left = None if final else time_left(elapsed, done, total, before)
             tail = " (done)" if final else ("" if left is None else f", about {_clock(left)} left")
-            return f"{description}: {count}, {_clock(elapsed)} elapsed{tail}"
+            return f"{description}: {count}{_clock(elapsed)} elapsed{tail}"
 
         def advance(n: float = 1) -> None:
             nonlocal done, last
