@@ -351,10 +351,9 @@ def _loop(model: nn.Module, datas: list[TrainingData], loss_cfg: LossConfig, tra
     model.train()
     threads = train_cfg.threads if device.type == "cpu" else 0
     mode = "eager"
-    if not static and reason is not None:
+    if not static and reason is not None and device.type == "cuda":  # the CPU always steps eagerly
         progress.log(f"training: eager steps ({reason})")
-        if device.type == "cuda":
-            mode = f"eager ({reason})"
+        mode = f"eager ({reason})"
     with cpu_threads(threads) as used, progress.stage("training", iters, start=start) as advance:
         # the pace of the last phase: after the warm start, and after CAP-UDF's larger second batch
         steady = max(warm_steps, expansion.at if expands else 0, start)
