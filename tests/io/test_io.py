@@ -35,6 +35,27 @@ def test_comma_separated_xyz(tmp_path):
     np.testing.assert_allclose(load_points(path), pts, atol=1e-9)
 
 
+@pytest.mark.parametrize("name, header", [("s.csv", ""), ("s.csv", "id;x;y;z\n"), ("s.xyz", ""), ("s.txt", "")])
+@pytest.mark.parametrize("decimal", [".", ","])
+def test_semicolon_separated_text_with_either_decimal_mark(tmp_path, name, header, decimal):
+    # as spreadsheets write a table where the comma is the decimal mark
+    pts = _cloud()
+    lead = "7;" if header else ""
+    rows = (lead + ";".join(f"{v:.6f}".replace(".", decimal) for v in row) for row in pts)
+    path = tmp_path / name
+    path.write_text(header + "\n".join(rows) + "\n")
+    np.testing.assert_allclose(load_points(path), pts, atol=1e-6)
+
+
+def test_a_decimal_comma_line_among_semicolons_is_named(tmp_path):
+    lines = [";".join(f"{v:.6f}".replace(".", ",") for v in row) for row in _cloud()]
+    lines[40] = "1,5;zwei;3,0"
+    path = tmp_path / "bad.csv"
+    path.write_text("\n".join(lines))
+    with pytest.raises(InputError, match=r"bad\.csv: line 41: cannot parse numbers"):
+        load_points(path)
+
+
 def test_missing_file_and_unknown_extension(tmp_path):
     with pytest.raises(InputError, match="no such file"):
         load_points(tmp_path / "none.xyz")

@@ -135,8 +135,17 @@ def _text_lines(path: Path):
         raise InputError(f"{path}: not a text file (cannot decode as UTF-8)") from None
 
 
+def _separator(first: str, default: str | None) -> tuple[str | None, bool]:
+    """``(column separator, decimal comma)`` of a text cloud from its first data line: ``;`` where
+    it holds one (spreadsheets write it where the comma is the decimal mark, which a comma inside
+    its fields then is), else ``,`` where it holds one, else ``default`` (``None``: whitespace)."""
+    if ";" in first:
+        return ";", "," in first
+    return ("," if "," in first else default), False
+
+
 def _parse_rows(path: Path, delimiter: str | None, columns: tuple[int, int, int] = (0, 1, 2),
-                skip: int = 0) -> np.ndarray:
+                skip: int = 0, decimal_comma: bool = False) -> np.ndarray:
     """Parse numeric rows line by line (after ``skip`` data lines); the error names the line."""
     rows = []
     for n, (i, s) in enumerate(_text_lines(path)):
@@ -147,7 +156,8 @@ def _parse_rows(path: Path, delimiter: str | None, columns: tuple[int, int, int]
             raise InputError(f"{path}: line {i}: expected at least {max(columns) + 1} numbers, got "
                              f"{len(parts)}: {s[:60]!r}")
         try:
-            rows.append(tuple(float(parts[c]) for c in columns))
+            rows.append(tuple(float(parts[c].replace(",", ".") if decimal_comma else parts[c])
+                              for c in columns))
         except ValueError:
             raise InputError(f"{path}: line {i}: cannot parse numbers from {s[:60]!r}") from None
     return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
@@ -167,28 +177,32 @@ def _loadtxt(path: Path, delimiter: str | None, columns: tuple[int, int, int], s
 def _read_xyz(path: Path) -> np.ndarray:
     start, first, rows = _text_start(path)
     _check_rows(path, rows, "lines of text")
-    delimiter = "," if "," in first else None
-    arr = _loadtxt(path, delimiter, (0, 1, 2), 0)
-    return arr if arr is not None else _parse_rows(path, delimiter)
+    delimiter, decimal_comma = _separator(first, None)
+    arr = None if decimal_comma else _loadtxt(path, delimiter, (0, 1, 2), 0)
+    return arr if arr is not None else _parse_rows(path, delimiter, decimal_comma=decimal_comma)
 
 
 def _read_csv(path: Path) -> np.ndarray:
     start, first, rows = _text_start(path)
     _check_rows(path, rows, "lines of text")
-    header = [h.strip().strip('"').lower() for h in first.split(",")]
+    delimiter, decimal_comma = _separator(first, ",")
+    header = [h.strip().strip('"').lower() for h in first.split(delimiter)]
     try:
-        [float(h) for h in header[:3]]
+        [float(h.replace(",", ".") if decimal_comma else h) for h in header[:3]]
         has_header = False
     except ValueError:
         has_header = True
     if not has_header:
-        arr = _loadtxt(path, ",", (0, 1, 2), 0)
-        return arr if arr is not None else _parse_rows(path, ",")
+        arr = None if decimal_comma else _loadtxt(path, delimiter, (0, 1, 2), 0)
+        return arr if arr is not None else _parse_rows(path, delimiter, decimal_comma=decimal_comma)
+    # a header holds no numbers: the first data line tells the decimal mark
+    _, second = next(((i, s) for n, (i, s) in enumerate(_text_lines(path)) if n == 1), (0, ""))
+    decimal_comma = delimiter == ";" and "," in second
     cols = (0, 1, 2)
     if all(name in header for name in ("x", "y", "z")):
         cols = tuple(header.index(name) for name in ("x", "y", "z"))
-    arr = _loadtxt(path, ",", cols, start + 1)
-    return arr if arr is not None else _parse_rows(path, ",", cols, skip=1)
+    arr = None if decimal_comma else _loadtxt(path, delimiter, cols, start + 1)
+    return arr if arr is not None else _parse_rows(path, delimiter, cols, skip=1, decimal_comma=decimal_comma)
 
 
 def _read_ply(path: Path) -> np.ndarray:
@@ -256,8 +270,10 @@ POINT_READERS: dict[str, Callable[[Path], np.ndarray]] = {
 def load_points(path: str | os.PathLike, min_points: int = MIN_POINTS) -> np.ndarray:
     """Read a point cloud file (mm) into an ``(N, 3)`` float64 array, validated.
 
-    Formats by extension: ``.xyz``/``.txt``/``.pts`` (whitespace or commas, ≥ 3 columns, extra
-    columns ignored), ``.csv`` (optional header; columns ``x,y,z`` if named, else the first three),
+    Formats by extension: ``.xyz``/``.txt``/``.pts`` (whitespace, commas or semicolons, ≥ 3
+    columns, extra columns ignored), ``.csv`` (commas or semicolons; optional header; columns
+    ``x,y,z`` if named, else the first three); with semicolons a comma in a number is its decimal
+    mark, as spreadsheets write it in many locales;
     ``.ply`` (vertices), ``.npy`` (N×≥3), ``.npz`` (array ``points``). A file whose points would
     not fit in the memory available is refused before it is read (text is read as a stream).
     """
