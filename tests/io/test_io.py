@@ -47,6 +47,21 @@ def test_semicolon_separated_text_with_either_decimal_mark(tmp_path, name, heade
     np.testing.assert_allclose(load_points(path), pts, atol=1e-6)
 
 
+def test_a_pts_file_opens_with_its_point_count(tmp_path):
+    pts = _cloud()
+    path = tmp_path / "scan.pts"   # Leica PTS: the count, then x y z intensity r g b
+    path.write_text(f"{len(pts)}\n" + "\n".join(f"{a:.6f} {b:.6f} {c:.6f} -1200 255 255 255" for a, b, c in pts))
+    np.testing.assert_allclose(load_points(path), pts, atol=1e-6)
+
+
+@pytest.mark.parametrize("header", ["", '"x","y","z"\n'])
+def test_quoted_csv_fields(tmp_path, header):
+    pts = _cloud()
+    path = tmp_path / "q.csv"
+    path.write_text(header + "\n".join(f'"{a:.6f}","{b:.6f}","{c:.6f}"' for a, b, c in pts))
+    np.testing.assert_allclose(load_points(path), pts, atol=1e-6)
+
+
 def test_a_decimal_comma_line_among_semicolons_is_named(tmp_path):
     lines = [";".join(f"{v:.6f}".replace(".", ",") for v in row) for row in _cloud()]
     lines[40] = "1,5;zwei;3,0"

@@ -144,6 +144,11 @@ def _separator(first: str, default: str | None) -> tuple[str | None, bool]:
     return ("," if "," in first else default), False
 
 
+def _second_data_line(path: Path) -> str:
+    """The text cloud's second data line, stripped ("" where it has none)."""
+    return next((s for n, (_, s) in enumerate(_text_lines(path)) if n == 1), "")
+
+
 def _parse_rows(path: Path, delimiter: str | None, columns: tuple[int, int, int] = (0, 1, 2),
                 skip: int = 0, decimal_comma: bool = False) -> np.ndarray:
     """Parse numeric rows line by line (after ``skip`` data lines); the error names the line."""
@@ -151,7 +156,8 @@ def _parse_rows(path: Path, delimiter: str | None, columns: tuple[int, int, int]
     for n, (i, s) in enumerate(_text_lines(path)):
         if n < skip:
             continue
-        parts = [p for p in (s.split(delimiter) if delimiter else s.split()) if p.strip() != ""]
+        parts = [p.strip().strip('"') for p in (s.split(delimiter) if delimiter else s.split())]
+        parts = [p for p in parts if p != ""]
         if len(parts) <= max(columns):
             raise InputError(f"{path}: line {i}: expected at least {max(columns) + 1} numbers, got "
                              f"{len(parts)}: {s[:60]!r}")
@@ -168,7 +174,7 @@ def _loadtxt(path: Path, delimiter: str | None, columns: tuple[int, int, int], s
     parser to name the line."""
     try:
         arr = np.loadtxt(path, delimiter=delimiter, usecols=columns, comments=("#", "//"), ndmin=2,
-                         dtype=np.float64, skiprows=skip, encoding="utf-8")
+                         dtype=np.float64, skiprows=skip, encoding="utf-8", quotechar='"')
     except (ValueError, IndexError):
         return None
     return arr if arr.size else None
@@ -177,9 +183,13 @@ def _loadtxt(path: Path, delimiter: str | None, columns: tuple[int, int, int], s
 def _read_xyz(path: Path) -> np.ndarray:
     start, first, rows = _text_start(path)
     _check_rows(path, rows, "lines of text")
+    # a PTS file (and some other exports) opens with its number of points
+    count = first.strip().isdigit()
+    if count:
+        first = _second_data_line(path)
     delimiter, decimal_comma = _separator(first, None)
-    arr = None if decimal_comma else _loadtxt(path, delimiter, (0, 1, 2), 0)
-    return arr if arr is not None else _parse_rows(path, delimiter, decimal_comma=decimal_comma)
+    arr = None if decimal_comma else _loadtxt(path, delimiter, (0, 1, 2), start + 1 if count else 0)
+    return arr if arr is not None else _parse_rows(path, delimiter, skip=int(count), decimal_comma=decimal_comma)
 
 
 def _read_csv(path: Path) -> np.ndarray:
@@ -196,8 +206,7 @@ def _read_csv(path: Path) -> np.ndarray:
         arr = None if decimal_comma else _loadtxt(path, delimiter, (0, 1, 2), 0)
         return arr if arr is not None else _parse_rows(path, delimiter, decimal_comma=decimal_comma)
     # a header holds no numbers: the first data line tells the decimal mark
-    _, second = next(((i, s) for n, (i, s) in enumerate(_text_lines(path)) if n == 1), (0, ""))
-    decimal_comma = delimiter == ";" and "," in second
+    decimal_comma = delimiter == ";" and "," in _second_data_line(path)
     cols = (0, 1, 2)
     if all(name in header for name in ("x", "y", "z")):
         cols = tuple(header.index(name) for name in ("x", "y", "z"))
@@ -271,7 +280,8 @@ def load_points(path: str | os.PathLike, min_points: int = MIN_POINTS) -> np.nda
     """Read a point cloud file (mm) into an ``(N, 3)`` float64 array, validated.
 
     Formats by extension: ``.xyz``/``.txt``/``.pts`` (whitespace, commas or semicolons, ≥ 3
-    columns, extra columns ignored), ``.csv`` (commas or semicolons; optional header; columns
+    columns, extra columns ignored; a first line holding only the number of points, as a PTS
+    file's, skipped), ``.csv`` (commas or semicolons; optional header; columns
     ``x,y,z`` if named, else the first three); with semicolons a comma in a number is its decimal
     mark, as spreadsheets write it in many locales;
     ``.ply`` (vertices), ``.npy`` (N×≥3), ``.npz`` (array ``points``). A file whose points would
