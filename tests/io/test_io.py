@@ -62,6 +62,20 @@ def test_quoted_csv_fields(tmp_path, header):
     np.testing.assert_allclose(load_points(path), pts, atol=1e-6)
 
 
+def test_an_archive_of_one_array_holds_the_points_whatever_its_name(tmp_path):
+    pts = _cloud()
+    np.savez(tmp_path / "one.npz", pts)
+    np.testing.assert_allclose(load_points(tmp_path / "one.npz"), pts)
+    np.savez(tmp_path / "two.npz", a=pts, b=pts)
+    with pytest.raises(InputError, match=r"two\.npz: no array named 'points' \(it holds a, b\)"):
+        load_points(tmp_path / "two.npz")
+
+
+def test_points_one_per_column_are_refused_with_the_fix():
+    with pytest.raises(InputError, match=r"shape \(3, 200\), one point per column.*transpose"):
+        validate_points(_cloud().T)
+
+
 def test_a_decimal_comma_line_among_semicolons_is_named(tmp_path):
     lines = [";".join(f"{v:.6f}".replace(".", ",") for v in row) for row in _cloud()]
     lines[40] = "1,5;zwei;3,0"

@@ -38,6 +38,9 @@ def validate_points(points: Any, source: str = "points", min_points: int = MIN_P
         raise InputError(f"{source}: cannot be read as an array of numbers") from None
     if arr.ndim != 2 or arr.shape[1] < 3:
         raise InputError(f"{source}: expected an N×3 array of coordinates, got shape {arr.shape}")
+    if arr.shape[0] < min_points <= arr.shape[1] and arr.shape[0] <= 4:
+        raise InputError(f"{source}: got shape {arr.shape}, one point per column; points go one per "
+                         f"row (N×3): transpose the array")
     arr = np.ascontiguousarray(arr[:, :3])
     bad = ~np.isfinite(arr).all(axis=1)
     if bad.any():
@@ -259,13 +262,18 @@ def _read_npz(path: Path) -> np.ndarray:
 
     try:
         with zipfile.ZipFile(path) as archive:
-            if "points.npy" in archive.namelist():
-                with archive.open("points.npy") as fh:
-                    _check_rows(path, _npy_rows(path, fh), "points")
+            names = [n[:-4] for n in archive.namelist() if n.endswith(".npy")]
+            # an archive of one array (``np.savez(path, cloud)``) holds the points whatever its name
+            name = "points" if "points" in names or len(names) != 1 else names[0]
+            if name not in names:
+                raise InputError(f"{path}: no array named 'points' (it holds {', '.join(names) or 'none'}); "
+                                 f"save the points as points=…")
+            with archive.open(f"{name}.npy") as fh:
+                _check_rows(path, _npy_rows(path, fh), "points")
         with np.load(path, allow_pickle=False) as data:
-            if "points" not in data:
-                raise InputError(f"{path}: no array named 'points' (found: {', '.join(data.files)})")
-            return data["points"]
+            return data[name]
+    except InputError:
+        raise
     except (ValueError, OSError, zipfile.BadZipFile) as exc:
         raise InputError(f"{path}: cannot read NumPy archive ({exc})") from None
 
@@ -281,11 +289,11 @@ def load_points(path: str | os.PathLike, min_points: int = MIN_POINTS) -> np.nda
 
     Formats by extension: ``.xyz``/``.txt``/``.pts`` (whitespace, commas or semicolons, ≥ 3
     columns, extra columns ignored; a first line holding only the number of points, as a PTS
-    file's, skipped), ``.csv`` (commas or semicolons; optional header; columns
-    ``x,y,z`` if named, else the first three); with semicolons a comma in a number is its decimal
-    mark, as spreadsheets write it in many locales;
-    ``.ply`` (vertices), ``.npy`` (N×≥3), ``.npz`` (array ``points``). A file whose points would
-    not fit in the memory available is refused before it is read (text is read as a stream).
+    file's, skipped), ``.csv`` (commas or semicolons; optional header; columns ``x,y,z`` if
+    named, else the first three); with semicolons a comma in a number is its decimal mark, as
+    spreadsheets write it in many locales; ``.ply`` (vertices), ``.npy`` (N×≥3), ``.npz`` (array
+    ``points``, or its only array). A file whose points would not fit in the memory available is
+    refused before it is read (text is read as a stream).
     """
     path = Path(path)
     reader = POINT_READERS.get(path.suffix.lower())
