@@ -73,6 +73,40 @@ def test_evaluate_shares_within_a_distance(files, capsys):
     assert data["on_gt"] == 1.0 and data["covered"] == 1.0 and data["d_rg_mean_mm"] > 3.0
 
 
+def test_a_ground_truth_in_another_frame_is_said_and_placed_by_its_pose(files, capsys):
+    # the CT as it came, 300 mm away and turned: the scores are meaningless, and a line says why
+    turn = trimesh.transformations.rotation_matrix(0.4, [1, 2, 3])
+    turn[:3, 3] = [300.0, 0.0, 0.0]
+    ct = trimesh.load(files / "gt.ply")
+    ct.apply_transform(np.linalg.inv(turn))
+    ct.export(files / "ct.ply")
+    args = ["evaluate", str(files / "recon.ply"), "--gt", str(files / "ct.ply"), "--samples", "20000", "--quiet"]
+    assert main([*args, "--json", str(files / "far.json")]) == 0
+    assert "recon.ply and" in capsys.readouterr().err
+    assert json.loads((files / "far.json").read_text())["cd_mm"] > 100
+    # placed by the pose (as `register` writes it), the same scores as against the CT in place
+    (files / "T.json").write_text(json.dumps({"transform": turn.tolist()}))
+    assert main([*args, "--gt-pose", str(files / "T.json"), "--json", str(files / "placed.json")]) == 0
+    assert capsys.readouterr().err == ""
+    assert main(["evaluate", str(files / "recon.ply"), "--gt", str(files / "gt.ply"), "--samples", "20000",
+                 "--quiet", "--json", str(files / "inplace.json")]) == 0
+    placed, inplace = (json.loads((files / n).read_text()) for n in ("placed.json", "inplace.json"))
+    assert placed["cd_mm"] == pytest.approx(inplace["cd_mm"], abs=0.02)
+    assert placed["cd_mm"] == pytest.approx(1.0, abs=0.1)
+    # the file the pose came from is in the sidecar's inputs; the CT file is not touched
+    assert str(files / "T.json") in json.loads((files / "placed.json.json").read_text())["inputs"]
+    assert trimesh.load(files / "ct.ply").bounds[0][0] < -200
+
+
+def test_a_ground_truth_in_metres_is_said(files, capsys):
+    ct = trimesh.load(files / "gt.ply")
+    ct.apply_scale(0.001)
+    ct.export(files / "ct_m.ply")
+    assert main(["evaluate", str(files / "recon.ply"), "--gt", str(files / "ct_m.ply"), "--samples", "2000",
+                 "--quiet"]) == 0
+    assert "are both in mm?" in capsys.readouterr().err
+
+
 def test_evaluate_empty_mesh_is_a_counted_failure(files, capsys):
     out = files / "m.json"
     assert main(["evaluate", str(files / "empty.ply"), "--gt", str(files / "gt.ply"), "--samples", "1000",
@@ -89,6 +123,8 @@ def test_evaluate_empty_mesh_is_a_counted_failure(files, capsys):
     (["recon.ply", "--gt", "gt.ply", "--samples", "0"], "--samples"),
     (["recon.ply", "--gt", "gt.ply", "--within-mm", "-1"], "--within-mm: must be a finite number ≥ 0 mm"),
     (["recon.ply", "--gt", "gt.ply", "--within-mm", "nan"], "--within-mm: must be a finite number ≥ 0 mm"),
+    (["recon.ply", "--gt", "gt.ply", "--gt-pose", "none.json"], "none.json: no such file"),
+    (["recon.ply", "--gt", "gt.ply", "--gt-pose", "raw.xyz"], "raw.xyz"),
 ])
 def test_evaluate_bad_input_exits_2_naming_the_problem(files, capsys, monkeypatch, args, message):
     monkeypatch.chdir(files)
@@ -113,6 +149,29 @@ def test_render_png_grid_and_html(files):
                  str(files / "raw.xyz"), "-o", str(page), "--colour-samples", "20000"]) == 0
     assert "ready webgl2" in page.read_text()  # the status script is in the page
     assert main(["render", str(files / "recon.ply"), "-o", str(files / "x.jpg")]) == 2
+
+
+def test_render_places_the_ground_truth_by_its_pose(files, capsys):
+    shift = np.eye(4)
+    shift[:3, 3] = [0.0, 250.0, 0.0]
+    ct = trimesh.load(files / "gt.ply")
+    ct.apply_translation([0.0, -250.0, 0.0])
+    ct.export(files / "ct.ply")
+    (files / "T.txt").write_text("\n".join(" ".join(str(v) for v in row) for row in shift))
+    common = ["--tile-height", "120", "--colour-samples", "5000"]
+    assert main(["render", str(files / "recon.ply"), "--gt", str(files / "ct.ply"), "-o", str(files / "far.png"),
+                 *common]) == 0
+    assert "do not overlap" in capsys.readouterr().err
+    for name, extra in (("placed.png", ["--gt", str(files / "ct.ply"), "--gt-pose", str(files / "T.txt")]),
+                        ("inplace.png", ["--gt", str(files / "gt.ply")])):
+        assert main(["render", str(files / "recon.ply"), *extra, "-o", str(files / name), *common]) == 0
+        assert "warning" not in capsys.readouterr().err
+    # the same colours as against the ground truth in place: a 1 mm offset everywhere
+    placed, inplace = (np.asarray(Image.open(files / n).convert("RGB"), dtype=float) for n in ("placed.png", "inplace.png"))
+    assert np.abs(placed - inplace).mean() < 2.0
+    assert main(["render", str(files / "recon.ply"), "--gt-pose", str(files / "T.txt"), "-o",
+                 str(files / "x.png")]) == 2
+    assert "--gt-pose places the ground truth and needs --gt" in capsys.readouterr().err
 
 
 def test_stats_prints_tables_and_tests(files, capsys):

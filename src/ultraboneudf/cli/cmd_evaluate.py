@@ -8,6 +8,20 @@ import sys
 from ..errors import InputError
 from . import add_overwrite
 
+GT_POSE_HELP = ("a rigid 4×4 transform (mm) that places GT in the frame of what it is compared with, "
+                "applied before scoring: the T.json of `ultraboneudf register GT RECON`, or a matrix or "
+                "landmark file as `register --init` reads")
+
+
+def placed_ground_truth(gt, pose_path: str):
+    """``gt`` (a trimesh) moved by the pose in ``pose_path`` (a new mesh; the file is not touched)."""
+    from ..registration.initial import read_init
+
+    matrix, _ = read_init(pose_path)
+    placed = gt.copy()
+    placed.apply_transform(matrix)
+    return placed
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
@@ -20,6 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "failure (null metrics), never as zero.")
     p.add_argument("recon", metavar="RECON", help="reconstructed mesh in mm (.ply .obj .stl .off)")
     p.add_argument("--gt", required=True, metavar="GT", help="ground-truth mesh in mm")
+    p.add_argument("--gt-pose", metavar="T", help=GT_POSE_HELP)
     p.add_argument("--points", metavar="RAW",
                    help="raw (not down-sampled) ultrasound point cloud in mm; enables the pseudo ground truth")
     p.add_argument("--pseudo-gt-mm", type=float, default=None, metavar="T",
@@ -57,15 +72,23 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--pseudo-gt-mm: must be ≥ 0 mm, got {args.pseudo_gt_mm}")
     if args.within_mm is not None and not (math.isfinite(args.within_mm) and args.within_mm >= 0):
         raise InputError(f"--within-mm: must be a finite number ≥ 0 mm, got {args.within_mm}")
-    inputs = [p for p in (args.recon, args.gt, args.points) if p]
+    inputs = [p for p in (args.recon, args.gt, args.points, args.gt_pose) if p]
     if args.json:
         check_output(args.json, inputs=inputs, overwrite=args.overwrite)
     for given in inputs:
         check_input(given, "file")
     recon = read_mesh(args.recon)
     gt = load_mesh(args.gt)
+    if args.gt_pose:
+        gt = placed_ground_truth(gt, args.gt_pose)
     raw = load_points(args.points) if args.points else None
     from ..evaluation.metrics import evaluate
+    from ..evaluation.placement import placement_warnings
+
+    scored = [(str(args.recon), recon.vertices)] if recon is not None else []
+    for warning in placement_warnings((str(args.gt), gt.vertices),
+                                      scored + ([(str(args.points), raw)] if raw is not None else [])):
+        print(f"ultraboneudf evaluate: warning: {warning}", file=sys.stderr)
     from ..extraction.quality import mesh_quality
     from ..progress import Progress
 

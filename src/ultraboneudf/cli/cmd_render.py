@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from ..errors import InputError
 from . import add_overwrite
+from .cmd_evaluate import GT_POSE_HELP, placed_ground_truth
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -20,6 +22,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("meshes", nargs="+", metavar="MESH", help="reconstructed mesh(es) in mm")
     p.add_argument("-o", "--out", required=True, metavar="OUT", help="OUT.png or OUT.html")
     p.add_argument("--gt", metavar="GT", help="ground-truth mesh in mm (colours are distances to it)")
+    p.add_argument("--gt-pose", metavar="T", help=GT_POSE_HELP)
     p.add_argument("--points", metavar="RAW", help="raw ultrasound cloud in mm: pseudo ground truth for the "
                    "colours (as evaluate) and the input points of the viewer")
     p.add_argument("--pseudo-gt-mm", type=float, default=None, metavar="T",
@@ -53,6 +56,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--vmax: must be > 0 mm, got {args.vmax}")
     if args.pseudo_gt_mm is not None and not args.points:
         raise InputError("--pseudo-gt-mm needs --points (the raw ultrasound cloud)")
+    if args.gt_pose and not args.gt:
+        raise InputError("--gt-pose places the ground truth and needs --gt")
     if args.pseudo_gt_mm is not None and not args.pseudo_gt_mm >= 0:
         raise InputError(f"--pseudo-gt-mm: must be ≥ 0 mm, got {args.pseudo_gt_mm}")
     if args.colour_samples < 1:
@@ -64,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--labels: {len(labels)} labels for {len(args.meshes)} meshes")
     if args.points and not args.gt and kind == ".png":
         raise InputError("--points colours by the pseudo ground truth and needs --gt")
-    inputs = [*args.meshes, *(p for p in (args.gt, args.points) if p)]
+    inputs = [*args.meshes, *(p for p in (args.gt, args.points, args.gt_pose) if p)]
     check_output(out, inputs=inputs, overwrite=args.overwrite)
     for given in inputs:
         check_input(given, "file")
@@ -75,11 +80,20 @@ def run(args: argparse.Namespace) -> int:
     gt = read_mesh(args.gt) if args.gt else None
     if args.gt and gt is None:
         raise InputError(f"{args.gt}: holds no triangles")
+    if args.gt_pose:
+        gt = placed_ground_truth(gt, args.gt_pose)
     raw = load_points(args.points) if args.points else None
     if kind == ".png" and len(meshes) == 1 and meshes[0] is None:
         raise InputError(f"{args.meshes[0]}: holds no triangles; nothing to render")
     if kind != ".png" and meshes[0] is None:
         raise InputError(f"{args.meshes[0]}: holds no triangles; nothing to show")
+    if gt is not None:
+        from ..evaluation.placement import placement_warnings
+
+        scored = [(str(n), m.vertices) for n, m in zip(args.meshes, meshes) if m is not None]
+        for warning in placement_warnings((str(args.gt), gt.vertices),
+                                          scored + ([(str(args.points), raw)] if raw is not None else [])):
+            print(f"ultraboneudf render: warning: {warning}", file=sys.stderr)
     data = _draw(args, kind, meshes, labels, views, gt, raw)
     meta = record("render", inputs={str(p): sha256_file(p) for p in inputs},
                   options={k: str(v) for k, v in sorted(vars(args).items()) if k not in ("func", "out")})

@@ -1,4 +1,5 @@
-"""A starting pose the user already has: a 4×4 matrix (CT → target, mm) or landmark pairs.
+"""A pose the user already has: a 4×4 matrix (CT → target, mm) or landmark pairs (`register --init`,
+`evaluate --gt-pose`).
 
 Accepted files (every problem is an :class:`~ultraboneudf.errors.InputError` naming the file):
 
@@ -73,7 +74,7 @@ def read_init(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, Any]]:
             rows = [line.split("#")[0].replace(",", " ").split() for line in text.splitlines()]
             data = [[float(v) for v in row] for row in rows if row]
     except (OSError, ValueError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read the initial pose ({exc})") from None
+        raise InputError(f"{path}: cannot read the pose ({exc})") from None
     return _interpret(data, str(path))
 
 
@@ -84,7 +85,7 @@ def _interpret(data: Any, source: str) -> tuple[np.ndarray, dict[str, Any]]:
         if "ct" in data and "target" in data:
             pose = pose_from_landmarks(data["ct"], data["target"], source)
             return pose, {"kind": "landmarks", "pairs": len(data["ct"])}
-        raise InputError(f"{source}: a JSON initial pose needs \"transform\" (4×4) or \"ct\" and \"target\" "
+        raise InputError(f"{source}: a JSON pose needs \"transform\" (4×4) or \"ct\" and \"target\" "
                          f"landmark lists")
     if isinstance(data, list):
         lengths = {len(row) if isinstance(row, list) else -1 for row in data}
