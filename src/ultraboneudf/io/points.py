@@ -142,6 +142,7 @@ def _separator(first: str, default: str | None) -> tuple[str | None, bool]:
     """``(column separator, decimal comma)`` of a text cloud from its first data line: ``;`` where
     it holds one (spreadsheets write it where the comma is the decimal mark, which a comma inside
     its fields then is), else ``,`` where it holds one, else ``default`` (``None``: whitespace)."""
+    first = first.split("#")[0]  # a comment after the numbers says nothing of their format
     if ";" in first:
         return ";", "," in first
     return ("," if "," in first else default), False
