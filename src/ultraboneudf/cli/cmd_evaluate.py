@@ -84,14 +84,13 @@ def run(args: argparse.Namespace) -> int:
     raw = load_points(args.points) if args.points else None
     from ..evaluation.metrics import evaluate
     from ..evaluation.placement import placement_warnings
+    from ..extraction.quality import mesh_quality
+    from ..progress import Progress
 
     scored = [(str(args.recon), recon.vertices)] if recon is not None else []
     for warning in placement_warnings((str(args.gt), gt.vertices),
                                       scored + ([(str(args.points), raw)] if raw is not None else [])):
         print(f"ultraboneudf evaluate: warning: {warning}", file=sys.stderr)
-    from ..extraction.quality import mesh_quality
-    from ..progress import Progress
-
     progress = Progress(quiet=args.quiet)
     result = evaluate(recon, gt, raw_points=raw, pseudo_gt_mm=args.pseudo_gt_mm, samples=args.samples,
                       seed=args.seed, device=args.device, progress=progress, gt_source=str(args.gt),
