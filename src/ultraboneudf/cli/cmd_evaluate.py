@@ -9,8 +9,9 @@ from ..errors import InputError
 from . import add_overwrite
 
 GT_POSE_HELP = ("a rigid 4×4 transform (mm) that places GT in the frame of what it is compared with, "
-                "applied before scoring: the T.json of `ultraboneudf register GT RECON`, or a matrix or "
-                "landmark file as `register --init` reads")
+                "applied before scoring: the T.json of `ultraboneudf register GT SCAN` (registered to the "
+                "ultrasound points, not to the mesh being scored), or a matrix or landmark file as "
+                "`register --init` reads")
 
 
 def placed_ground_truth(gt, pose_path: str):

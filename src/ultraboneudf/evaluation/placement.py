@@ -43,6 +43,6 @@ def placement_warnings(reference: tuple[str, np.ndarray], others: Sequence[tuple
                        f"are both in mm?")
         elif gap > 0:
             out.append(f"{name} and {ref_name} do not overlap (their bounding boxes lie {gap:.3g} mm apart): "
-                       f"are they in the same frame? (`ultraboneudf register {ref_name} {name} -o T.json` "
-                       f"finds the pose that places the first on the second; `--gt-pose T.json` applies it)")
+                       f"are they in the same frame? (`ultraboneudf register {ref_name} SCAN -o T.json` "
+                       f"places it on the ultrasound points; `--gt-pose T.json` applies it)")
     return out
