@@ -24,6 +24,19 @@ def placed_ground_truth(gt, pose_path: str):
     return placed
 
 
+def warn_misplaced(command: str, gt_path: str, gt, meshes: list, points_path: str | None, raw) -> None:
+    """One stderr line (also with ``--quiet``) for each of ``meshes`` (``(path, trimesh or None)``)
+    and the points ``raw`` that lie in another frame or unit than ``gt``
+    (:func:`~ultraboneudf.evaluation.placement.placement_warnings`)."""
+    from ..evaluation.placement import placement_warnings
+
+    scored = [(str(path), mesh.vertices) for path, mesh in meshes if mesh is not None]
+    if raw is not None:
+        scored.append((str(points_path), raw))
+    for warning in placement_warnings((str(gt_path), gt.vertices), scored):
+        print(f"ultraboneudf {command}: warning: {warning}", file=sys.stderr)
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "evaluate", help="Chamfer distance and HD95 (mm) of a reconstruction against a ground-truth mesh",
@@ -84,14 +97,10 @@ def run(args: argparse.Namespace) -> int:
         gt = placed_ground_truth(gt, args.gt_pose)
     raw = load_points(args.points) if args.points else None
     from ..evaluation.metrics import evaluate
-    from ..evaluation.placement import placement_warnings
     from ..extraction.quality import mesh_quality
     from ..progress import Progress
 
-    scored = [(str(args.recon), recon.vertices)] if recon is not None else []
-    for warning in placement_warnings((str(args.gt), gt.vertices),
-                                      scored + ([(str(args.points), raw)] if raw is not None else [])):
-        print(f"ultraboneudf evaluate: warning: {warning}", file=sys.stderr)
+    warn_misplaced("evaluate", args.gt, gt, [(args.recon, recon)], args.points, raw)
     progress = Progress(quiet=args.quiet)
     result = evaluate(recon, gt, raw_points=raw, pseudo_gt_mm=args.pseudo_gt_mm, samples=args.samples,
                       seed=args.seed, device=args.device, progress=progress, gt_source=str(args.gt),

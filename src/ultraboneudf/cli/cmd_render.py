@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from ..errors import InputError
 from . import add_overwrite
-from .cmd_evaluate import GT_POSE_HELP, placed_ground_truth
+from .cmd_evaluate import GT_POSE_HELP, placed_ground_truth, warn_misplaced
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -88,12 +87,7 @@ def run(args: argparse.Namespace) -> int:
     if kind != ".png" and meshes[0] is None:
         raise InputError(f"{args.meshes[0]}: holds no triangles; nothing to show")
     if gt is not None:
-        from ..evaluation.placement import placement_warnings
-
-        scored = [(str(n), m.vertices) for n, m in zip(args.meshes, meshes) if m is not None]
-        for warning in placement_warnings((str(args.gt), gt.vertices),
-                                          scored + ([(str(args.points), raw)] if raw is not None else [])):
-            print(f"ultraboneudf render: warning: {warning}", file=sys.stderr)
+        warn_misplaced("render", args.gt, gt, list(zip(args.meshes, meshes)), args.points, raw)
     data = _draw(args, kind, meshes, labels, views, gt, raw)
     meta = record("render", inputs={str(p): sha256_file(p) for p in inputs},
                   options={k: str(v) for k, v in sorted(vars(args).items()) if k not in ("func", "out")})
